@@ -1,0 +1,1 @@
+"""Multi-view datasets: collection, chunked storage, clip indexing."""

@@ -1,0 +1,54 @@
+"""Multi-view cartpole videos under random actions from random initial states.
+
+Each episode starts from a random state (cart position, pole angle and both velocities drawn from the
+ranges in the spec) and applies random actions: with probability `action_keep_prob` the previous action
+is kept, otherwise a new one is drawn uniformly from [-1, 1] (a persistent random walk like PVE's
+exploration). Every frame is rendered from all cameras after the state is set, and the true state
+(x, theta, x_dot, theta_dot) and the action taken are recorded with it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from mftcn_bench.rendering import MultiViewRenderer, ensure_gl
+
+
+def collect_episode(config: Mapping[str, Any], index: int) -> dict[str, np.ndarray]:
+    """Episode `index` of the dataset `config`; a pure function of (config, index)."""
+    ensure_gl()
+    from dm_control import suite
+
+    rng = np.random.default_rng([int(config["seed"]), index])
+    env = suite.load("cartpole", "swingup", task_kwargs={"random": int(rng.integers(2**31))})
+    physics = env.physics
+    render = config["render"]
+    renderer = MultiViewRenderer(physics, config["cameras"], int(config["height"]), int(config["width"]),
+                                 int(render["shadowsize"]), int(render["offsamples"]))
+    init = config["init"]
+    env.reset()
+    with physics.reset_context():
+        physics.named.data.qpos["slider"] = rng.uniform(-init["x_range"], init["x_range"])
+        physics.named.data.qpos["hinge_1"] = rng.uniform(-np.pi, np.pi)
+        physics.named.data.qvel["slider"] = rng.normal(0.0, init["x_dot_std"])
+        physics.named.data.qvel["hinge_1"] = rng.normal(0.0, init["theta_dot_std"])
+
+    length = int(config["episode_length"])
+    keep_prob = float(config["action_keep_prob"])
+    frames = np.empty((len(config["cameras"]), length) + (int(config["height"]), int(config["width"]), 3),
+                      dtype=np.uint8)
+    state = np.empty((length, 4), dtype=np.float64)
+    action = np.empty((length, 1), dtype=np.float32)
+    current = rng.uniform(-1.0, 1.0)
+    for t in range(length):
+        frames[:, t] = renderer.render()
+        state[t] = np.concatenate([physics.data.qpos, physics.data.qvel])
+        if rng.random() >= keep_prob:
+            current = rng.uniform(-1.0, 1.0)
+        action[t] = current
+        for _ in range(int(config["action_repeat"])):
+            env.step(action[t])
+    return {"frames": frames, "state": state, "action": action}

@@ -1,0 +1,177 @@
+"""Multi-view datasets on disk: a manifest and one compressed chunk per episode.
+
+Layout of `<home>/datasets/<name>-<id>/`:
+    manifest.json      config, seed, versions, per-chunk checksums; written last, atomically
+    progress.json      chunks finished so far while collecting (lets a killed collection resume)
+    ep00000.npz ...    per episode: frames [views, T, H, W, 3] uint8, state [T, S], action [T, A]
+
+The dataset id is a hash of its config and the collector's format version, so the same spec and seed
+reuse the dataset. Episodes are loaded one at a time (with a small cache), never the whole dataset.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mftcn_bench.data.chunks import atomic_write_bytes, read_chunk, write_chunk
+from mftcn_bench.errors import DataError
+from mftcn_bench.provenance import content_hash, versions
+
+FORMAT_VERSION = 1
+SPLITS = ("train", "test")
+
+# An episode collector: (dataset config, episode index) -> arrays of that episode.
+Collector = Callable[[Mapping[str, Any], int], dict[str, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One episode's synchronized views and per-frame records."""
+
+    index: int
+    frames: np.ndarray  # [views, T, H, W, 3] uint8
+    state: np.ndarray  # [T, S] true state as the simulator gives it
+    action: np.ndarray  # [T, A] action taken after frame t was observed
+
+    @property
+    def length(self) -> int:
+        return int(self.frames.shape[1])
+
+
+class MultiViewDataset:
+    """A collected dataset, read episode by episode."""
+
+    def __init__(self, root: Path, cache_episodes: int = 2) -> None:
+        self.root = Path(root)
+        manifest_path = self.root / "manifest.json"
+        if not manifest_path.exists():
+            raise DataError(f"{self.root} is not a collected dataset (no manifest.json)")
+        self.manifest: dict[str, Any] = json.loads(manifest_path.read_text())
+        self._chunks = {int(c["episode"]): c for c in self.manifest["chunks"]}
+        if not self._chunks:
+            raise DataError(f"dataset {self.root} is empty: it has no episodes")
+        self._cache: OrderedDict[int, Episode] = OrderedDict()
+        self._cache_size = cache_episodes
+
+    @property
+    def dataset_id(self) -> str:
+        return self.manifest["id"]
+
+    @property
+    def config(self) -> Mapping[str, Any]:
+        return self.manifest["config"]
+
+    @property
+    def cameras(self) -> list[str]:
+        return list(self.config["cameras"])
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        return int(self.config["height"]), int(self.config["width"])
+
+    @property
+    def fingerprint(self) -> str:
+        """A hash of the id and every chunk's checksum: what a result's identity depends on."""
+        return content_hash([self.dataset_id, [c["sha256"] for c in self.manifest["chunks"]]])
+
+    def episodes(self, split: str) -> list[int]:
+        if split not in SPLITS:
+            raise DataError(f"unknown split {split!r}; valid: {', '.join(SPLITS)}")
+        return sorted(i for i, c in self._chunks.items() if c["split"] == split)
+
+    def episode_length(self, index: int) -> int:
+        return int(self._chunks[index]["length"])
+
+    def load(self, index: int) -> Episode:
+        """Episode `index`, checked against its checksum when first read."""
+        if index in self._cache:
+            self._cache.move_to_end(index)
+            return self._cache[index]
+        chunk = self._chunks.get(index)
+        if chunk is None:
+            raise DataError(f"dataset {self.root} has no episode {index}")
+        arrays = read_chunk(self.root / chunk["file"], chunk["sha256"])
+        episode = Episode(index, arrays["frames"], arrays["state"], arrays["action"])
+        self._cache[index] = episode
+        while len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
+        return episode
+
+    def iter_episodes(self, split: str) -> Iterator[Episode]:
+        for index in self.episodes(split):
+            yield self.load(index)
+
+
+def dataset_id(config: Mapping[str, Any]) -> str:
+    return content_hash({"config": dict(config), "format": FORMAT_VERSION})
+
+
+@contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    """An exclusive lock so that concurrent runs collect a dataset once."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _episode_plan(config: Mapping[str, Any]) -> list[tuple[int, str]]:
+    train, test = int(config["train_episodes"]), int(config["test_episodes"])
+    if train < 1 or test < 1:
+        raise DataError(f"a dataset needs at least 1 train and 1 test episode, got {train} and {test}")
+    return [(i, "train") for i in range(train)] + [(train + i, "test") for i in range(test)]
+
+
+def ensure_dataset(
+    datasets_dir: Path, config: Mapping[str, Any], collector: Collector, *, show_progress: bool = True
+) -> MultiViewDataset:
+    """The dataset for `config`, collected (or finished, after an interruption) if needed."""
+    ident = dataset_id(config)
+    root = datasets_dir / f"{config['name']}-{ident}"
+    if (root / "manifest.json").exists():
+        return MultiViewDataset(root)
+    with _locked(datasets_dir / f".{root.name}.lock"):
+        if (root / "manifest.json").exists():  # another process finished it while we waited
+            return MultiViewDataset(root)
+        root.mkdir(parents=True, exist_ok=True)
+        progress_path = root / "progress.json"
+        done: dict[str, dict[str, Any]] = {}
+        if progress_path.exists():
+            done = {c["file"]: c for c in json.loads(progress_path.read_text())}
+        plan = _episode_plan(config)
+        from tqdm import tqdm
+
+        bar = tqdm(total=sum(int(config["episode_length"]) for _ in plan), unit="frame",
+                   desc=f"collect {config['name']}", disable=not show_progress, leave=False)
+        chunks = []
+        for index, split in plan:
+            name = f"ep{index:05d}.npz"
+            entry = done.get(name)
+            if entry is None or not (root / name).exists():
+                arrays = collector(config, index)
+                sha = write_chunk(root / name, arrays)
+                entry = {"file": name, "episode": index, "split": split,
+                         "length": int(arrays["frames"].shape[1]), "sha256": sha}
+                done[name] = entry
+                atomic_write_bytes(progress_path, json.dumps(list(done.values()), indent=1).encode())
+            chunks.append(entry)
+            bar.update(int(config["episode_length"]))
+        bar.close()
+        manifest = {"id": ident, "format": FORMAT_VERSION, "config": dict(config), "seed": config["seed"],
+                    "versions": versions(), "chunks": chunks}
+        atomic_write_bytes(root / "manifest.json", json.dumps(manifest, indent=1, sort_keys=True).encode())
+        progress_path.unlink(missing_ok=True)
+        return MultiViewDataset(root)
+

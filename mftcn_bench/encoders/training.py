@@ -1,0 +1,154 @@
+"""Training loop for multi-view time-contrastive encoders (mfTCN, TCN): sample, embed, n-pairs, Adam.
+
+Batches come from a pool of decoded train episodes that is refreshed one episode at a time, so the
+loader never decompresses a chunk per step. Checkpoints (model, optimizer, step, random states) are
+written atomically every `checkpoint_every` steps; `fit` resumes from the last one after a kill.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from mftcn_bench.data.clips import clip_indices
+from mftcn_bench.data.dataset import Episode, MultiViewDataset
+from mftcn_bench.encoders.base import FitBudget, ProgressFn
+from mftcn_bench.encoders.losses import multiview_npairs_loss
+from mftcn_bench.encoders.sampling import plan_batch
+from mftcn_bench.errors import SpecError, TrainingError
+
+
+@dataclass(frozen=True)
+class ContrastiveTrainConfig:
+    """The `[train]` table of a time-contrastive encoder spec."""
+
+    steps: int
+    batch_timesteps: int
+    episodes_per_batch: int
+    alpha: int
+    lr: float
+    weight_decay: float
+    reg_lambda: float
+    episode_pool: int
+    pool_refresh_steps: int
+    checkpoint_every: int
+    max_seconds: float = 0.0  # 0: no wall-clock limit
+
+    @classmethod
+    def from_table(cls, name: str, table: dict) -> ContrastiveTrainConfig:
+        try:
+            return cls(**table)
+        except TypeError as exc:
+            raise SpecError(f"encoder {name!r}: bad [train] table ({exc})") from None
+
+
+class ClipNetwork(Protocol):
+    """A torch module embedding clips [B, n, 3, H, W] (uint8) to [B, D]."""
+
+    def __call__(self, clips: torch.Tensor) -> torch.Tensor: ...
+
+
+class EpisodePool:
+    """A few decoded train episodes; every `refresh_steps` one of them is swapped for another."""
+
+    def __init__(self, dataset: MultiViewDataset, size: int, refresh_steps: int, rng: np.random.Generator,
+                 members: list[int] | None = None):
+        self.dataset, self.refresh_steps, self.rng = dataset, refresh_steps, rng
+        self.train = dataset.episodes("train")
+        self.size = min(size, len(self.train))
+        picked = members if members is not None else rng.choice(self.train, size=self.size, replace=False)
+        self.episodes: dict[int, Episode] = {int(i): dataset.load(int(i)) for i in picked}
+
+    def step(self, step: int) -> None:
+        if self.refresh_steps <= 0 or step == 0 or step % self.refresh_steps or self.size == len(self.train):
+            return
+        outside = [i for i in self.train if i not in self.episodes]
+        drop = int(self.rng.choice(sorted(self.episodes)))
+        add = int(self.rng.choice(outside))
+        del self.episodes[drop]
+        self.episodes[add] = self.dataset.load(add)
+
+
+def gather_clips(pool: EpisodePool, episodes: np.ndarray, times: np.ndarray, frames: int,
+                 stride: int) -> np.ndarray:
+    """uint8 [views, K, n, H, W, 3]: the clip of every view at each (episode, time)."""
+    index = clip_indices(times, frames, stride)
+    rows = [pool.episodes[int(e)].frames[:, idx] for e, idx in zip(episodes, index, strict=True)]
+    return np.stack(rows, axis=1)
+
+
+def _save_checkpoint(path: Path, net: torch.nn.Module, opt: torch.optim.Optimizer, step: int,
+                     rng: np.random.Generator, pool: EpisodePool) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "step": step,
+                "pool": sorted(pool.episodes),
+                "numpy_rng": json.dumps(rng.bit_generator.state),
+                "torch_rng": torch.get_rng_state()}, tmp)
+    os.replace(tmp, path)
+
+
+def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: ContrastiveTrainConfig,
+                    budget: FitBudget, progress: ProgressFn, workdir: Path, *, frames: int, stride: int,
+                    seed: int) -> dict[str, float]:
+    """Train `net` with multi-view n-pairs; returns {'final_loss', 'steps', 'seconds'}."""
+    if len(dataset.cameras) < 2:
+        raise SpecError("time-contrastive training needs a dataset with at least two camera views")
+    lookback = (frames - 1) * stride + 1
+    shortest = min(dataset.episode_length(i) for i in dataset.episodes("train"))
+    if lookback > shortest:
+        raise SpecError(f"lookback of {lookback} frames is longer than the shortest train episode "
+                        f"({shortest} frames); use a smaller frames/stride or longer episodes")
+    min_gap = max(config.alpha, lookback)
+    rng = np.random.default_rng(seed)
+    torch.manual_seed(seed)
+    opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    checkpoint = workdir / "train_checkpoint.pt"
+    start, members = 0, None
+    if checkpoint.exists():
+        try:
+            state = torch.load(checkpoint, weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - a truncated or foreign file
+            raise TrainingError(f"training checkpoint {checkpoint} cannot be loaded ({type(exc).__name__}); "
+                                f"delete it to train from the start") from None
+        net.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        start, members = int(state["step"]), [int(i) for i in state["pool"]]
+        torch.set_rng_state(state["torch_rng"])
+        rng.bit_generator.state = json.loads(state["numpy_rng"])
+    pool = EpisodePool(dataset, config.episode_pool, config.pool_refresh_steps, rng, members)
+    net.train()
+    began, loss_value, step = time.monotonic(), float("nan"), start
+    limit = budget.max_seconds or None
+    for step in range(start, budget.steps):
+        pool.step(step)
+        lengths = {i: ep.length for i, ep in pool.episodes.items()}
+        plan = plan_batch(rng, sorted(pool.episodes), lengths, config.batch_timesteps,
+                          config.episodes_per_batch, min_gap)
+        clips = gather_clips(pool, plan.episodes, plan.times, frames, stride)
+        views, count = clips.shape[:2]
+        batch = torch.from_numpy(clips.reshape(views * count, *clips.shape[2:])).permute(0, 1, 4, 2, 3)
+        embeddings = net(batch).reshape(views, count, -1)
+        loss = multiview_npairs_loss(embeddings, config.reg_lambda)
+        loss_value = float(loss.detach())
+        if not np.isfinite(loss_value):
+            raise TrainingError(f"training loss became {loss_value} at step {step}; no result was written "
+                                f"(try a lower train.lr)")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        progress(step + 1, budget.steps, {"loss": loss_value})
+        done = step + 1
+        if config.checkpoint_every and done % config.checkpoint_every == 0 and done < budget.steps:
+            _save_checkpoint(checkpoint, net, opt, done, rng, pool)
+        if limit is not None and time.monotonic() - began > limit:
+            break
+    net.eval()
+    return {"final_loss": loss_value, "steps": float(step + 1 if budget.steps else 0),
+            "seconds": time.monotonic() - began}

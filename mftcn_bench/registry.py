@@ -1,0 +1,94 @@
+"""The registry of encoders and tasks, fed only by entry points.
+
+Groups `mftcn_bench.encoders` and `mftcn_bench.tasks`. An entry point's name is the variant
+(`mftcn5`, `cartpole-probe`), its value the implementing class. The variant's spec file is
+`specs/encoders/<name>.toml` or `specs/tasks/<name>.toml` inside the entry point's top-level package.
+Listing reads spec files only; the implementation is imported when a variant is used, so a plugin that
+fails to import costs a warning, never the rest of the harness.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import warnings
+from dataclasses import dataclass
+from importlib.metadata import EntryPoint, entry_points
+from typing import Any, Literal
+
+from mftcn_bench.errors import BenchError, SpecError, did_you_mean
+from mftcn_bench.specs import EncoderSpec, TaskSpec, parse_toml
+
+Kind = Literal["encoders", "tasks"]
+GROUPS: dict[Kind, str] = {"encoders": "mftcn_bench.encoders", "tasks": "mftcn_bench.tasks"}
+
+
+class PluginWarning(UserWarning):
+    """A registered plugin that cannot be used (import failure, missing spec)."""
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One registered variant: its entry point and its parsed spec."""
+
+    kind: Kind
+    entry_point: EntryPoint
+    spec: EncoderSpec | TaskSpec
+
+    @property
+    def name(self) -> str:
+        return self.entry_point.name
+
+    @property
+    def description(self) -> str:
+        return self.spec.description
+
+    def load(self) -> type:
+        """Import and return the implementing class; an import failure becomes a one-line error."""
+        try:
+            return self.entry_point.load()
+        except Exception as exc:  # noqa: BLE001 - any plugin failure is reported the same way
+            raise BenchError(
+                f"{self.kind[:-1]} {self.name!r} failed to import ({self.entry_point.value}): "
+                f"{type(exc).__name__}: {exc}"
+            ) from None
+
+
+def _read_spec(kind: Kind, ep: EntryPoint) -> EncoderSpec | TaskSpec:
+    package = ep.module.split(".")[0]
+    try:
+        resource = importlib.resources.files(package) / "specs" / kind / f"{ep.name}.toml"
+        text = resource.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SpecError(f"no spec file specs/{kind}/{ep.name}.toml in package {package!r}") from None
+    except Exception as exc:  # noqa: BLE001 - a broken plugin package
+        raise SpecError(f"package {package!r} failed to import: {type(exc).__name__}: {exc}") from None
+    data = parse_toml(text, f"{package}/specs/{kind}/{ep.name}.toml")
+    if kind == "encoders":
+        return EncoderSpec.from_dict(ep.name, data)
+    return TaskSpec.from_dict(ep.name, data)
+
+
+def entries(kind: Kind) -> dict[str, Entry]:
+    """All usable registered variants of `kind`, by name; unusable ones are reported as warnings."""
+    found: dict[str, Entry] = {}
+    for ep in entry_points(group=GROUPS[kind]):
+        if ep.name in found:
+            continue  # the same distribution seen twice on sys.path
+        try:
+            found[ep.name] = Entry(kind, ep, _read_spec(kind, ep))
+        except BenchError as exc:
+            warnings.warn(f"skipping {kind[:-1]} {ep.name!r}: {exc}", PluginWarning, stacklevel=2)
+    return dict(sorted(found.items()))
+
+
+def get(kind: Kind, name: str) -> Entry:
+    """The registered variant `name`, or a one-line error with suggestions."""
+    found = entries(kind)
+    if name not in found:
+        raise SpecError(did_you_mean(kind[:-1], name, list(found)))
+    return found[name]
+
+
+def describe(kind: Kind) -> list[dict[str, Any]]:
+    """Rows for `mftcn-bench list`: name and one-line description."""
+    return [{"name": e.name, "description": e.description} for e in entries(kind).values()]

@@ -1,0 +1,161 @@
+"""One run, spec -> build -> run -> result: resolve the config, make or reuse the dataset, fit or reuse the
+encoder, evaluate the task, store the result.
+
+Identities are content hashes: a run's id covers the resolved config (encoder spec, task spec, preset
+values, overrides), preset name, seed, the dataset's fingerprint and the package version; an encoder's
+checkpoint key covers its resolved spec, the dataset fingerprint, the seed and the package version, so
+tasks that share a dataset share the trained encoder and nothing else is ever served from a cache.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import mftcn_bench
+from mftcn_bench import registry
+from mftcn_bench.data.chunks import atomic_write_bytes
+from mftcn_bench.data.dataset import MultiViewDataset, ensure_dataset
+from mftcn_bench.encoders.base import Encoder, FitBudget
+from mftcn_bench.errors import BenchError
+from mftcn_bench.home import BenchHome
+from mftcn_bench.provenance import content_hash, versions
+from mftcn_bench.specs import encoder_spec_from_config, resolve_config
+from mftcn_bench.store import ResultStore, RunRecord
+from mftcn_bench.tasks.base import Task
+
+
+@dataclass(frozen=True)
+class RunRequest:
+    """What `mftcn-bench run` was asked for."""
+
+    encoder: str
+    task: str
+    preset: str | None = None
+    seed: int = 0
+    overrides: Sequence[tuple[str, Any]] = field(default_factory=tuple)
+    force: bool = False
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    record: RunRecord
+    reused: bool
+    table: list[dict[str, Any]]
+    notes: list[str]
+
+
+@dataclass(frozen=True)
+class PreparedRun:
+    """A request resolved against the registry and specs, with its task built."""
+
+    request: RunRequest
+    preset: str
+    config: dict[str, Any]
+    encoder_entry: registry.Entry
+    task: Task
+
+
+def prepare(request: RunRequest) -> PreparedRun:
+    """Resolve names, preset and overrides; build the task. Fails fast on bad input, before any work."""
+    if request.seed < 0:
+        raise BenchError(f"seed must be a non-negative integer, got {request.seed}")
+    encoder_entry = registry.get("encoders", request.encoder)
+    task_entry = registry.get("tasks", request.task)
+    preset, config = resolve_config(encoder_entry.spec, task_entry.spec, request.preset, request.overrides)
+    encoder_spec_from_config(encoder_entry.description, config["encoder"])  # validates overridden values
+    task = task_entry.load()(config["task"], request.seed)
+    return PreparedRun(request, preset, config, encoder_entry, task)
+
+
+def prepare_dataset(prepared: PreparedRun, home: BenchHome, show_progress: bool = True) -> MultiViewDataset:
+    return ensure_dataset(home.datasets, prepared.task.dataset_config, prepared.task.collector,
+                          show_progress=show_progress)
+
+
+def _progress_bar(name: str, enabled: bool):
+    from tqdm import tqdm
+
+    bar = tqdm(desc=f"fit {name}", unit="step", disable=not enabled, leave=False)
+
+    def report(step: int, total: int, stats: dict[str, float]) -> None:
+        bar.total = total
+        bar.n = step
+        bar.set_postfix({k: f"{v:.4f}" for k, v in stats.items()}, refresh=False)
+        bar.refresh()
+
+    return bar, report
+
+
+def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
+                  show_progress: bool = True) -> tuple[Encoder, dict[str, Any]]:
+    """The encoder for this run, fitted on `dataset` or loaded from the shared checkpoint."""
+    config, seed = prepared.config, prepared.request.seed
+    spec = encoder_spec_from_config(prepared.encoder_entry.description, config["encoder"])
+    encoder = prepared.encoder_entry.load()(spec, image_shape=dataset.image_shape, seed=seed)
+    if not isinstance(encoder, Encoder):
+        raise BenchError(f"encoder {spec.name!r} ({prepared.encoder_entry.entry_point.value}) does not "
+                         f"implement the Encoder protocol (info, needs_fit, fit, embed, save, load)")
+    stats: dict[str, Any] = {"fitted": False, "reused": False}
+    if not encoder.needs_fit:
+        return encoder, stats
+    key = content_hash({"encoder": config["encoder"], "dataset": dataset.fingerprint, "seed": seed,
+                        "version": mftcn_bench.__version__})
+    workdir = home.encoders / f"{spec.name}-{key}"
+    model_path = workdir / "model.pt"
+    if prepared.request.force and workdir.exists():
+        shutil.rmtree(workdir)
+    if model_path.exists():
+        encoder.load(model_path)
+        return encoder, {**stats, "reused": True, "checkpoint": str(model_path)}
+    workdir.mkdir(parents=True, exist_ok=True)
+    train = dict(spec.train)
+    budget = FitBudget(steps=int(train.get("steps", 0)), max_seconds=train.get("max_seconds") or None)
+    bar, report = _progress_bar(spec.name, show_progress)
+    try:
+        fit_stats = encoder.fit(dataset, budget, report, workdir)
+    finally:
+        bar.close()
+    encoder.save(model_path)
+    (workdir / "train_checkpoint.pt").unlink(missing_ok=True)
+    atomic_write_bytes(workdir / "fit.json", json.dumps(fit_stats, indent=1).encode())
+    return encoder, {**stats, "fitted": True, "checkpoint": str(model_path), **fit_stats}
+
+
+def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> RunOutcome:
+    """Run (or reuse) one (encoder, task, preset, seed) and return its stored record."""
+    began = time.monotonic()
+    prepared = prepare(request)
+    store = ResultStore(home.database)
+    dataset = prepare_dataset(prepared, home, show_progress)
+    after_data = time.monotonic()
+    run_id = content_hash({"config": prepared.config, "preset": prepared.preset, "seed": request.seed,
+                           "dataset": dataset.fingerprint, "version": mftcn_bench.__version__})
+    existing = store.get(run_id)
+    if existing is not None and not request.force:
+        return RunOutcome(existing, True, prepared.task.table(existing.metrics),
+                          existing.config.get("notes", []))
+    encoder, fit = build_encoder(prepared, dataset, home, show_progress)
+    after_fit = time.monotonic()
+    result = prepared.task.evaluate(encoder, dataset)
+    done = time.monotonic()
+    record = RunRecord(
+        run_id=run_id, encoder=request.encoder, task=request.task, preset=prepared.preset,
+        seed=request.seed, dataset_id=dataset.fingerprint,
+        config={**prepared.config, "preset": prepared.preset, "seed": request.seed,
+                "encoder_info": asdict(encoder.info), "fit": fit, "notes": result.notes,
+                "dataset_path": str(dataset.root)},
+        versions=versions(), metrics=result.metrics,
+        timings={"dataset_s": after_data - began, "fit_s": after_fit - after_data,
+                 "evaluate_s": done - after_fit, "total_s": done - began},
+        artifacts=str(home.runs / run_id),
+    )
+    run_dir = home.runs / run_id
+    run_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(run_dir / "result.json", json.dumps(asdict(record), indent=1, sort_keys=True).encode())
+    store.put(record)
+    return RunOutcome(record, False, prepared.task.table(result.metrics), result.notes)

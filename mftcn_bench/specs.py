@@ -1,0 +1,197 @@
+"""Spec files (TOML, parsed as data) and their resolution into one run configuration.
+
+A run's configuration is `{"encoder": <encoder spec>, "task": <task spec without presets>}`. A task's
+preset (`[presets.<name>]` in its spec) and the command line's `--set key=value` overrides are applied to
+it in that order, as dotted keys rooted at `encoder.` or `task.`. Overrides may only change keys that the
+spec already has, with a value of the same type, so a typo never silently runs the default.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import tomllib
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from mftcn_bench.errors import SpecError, did_you_mean
+
+
+@dataclass(frozen=True)
+class EncoderSpec:
+    """An encoder variant: family, clip shape (frames n at stride s), embedding size, and free-form
+    `model` and `train` tables that the family's implementation validates."""
+
+    name: str
+    family: str
+    description: str
+    frames: int = 1
+    stride: int = 1
+    embedding_dim: int = 32
+    model: Mapping[str, Any] = field(default_factory=dict)
+    train: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def lookback(self) -> int:
+        """Frames spanned by one clip: (n - 1) * s + 1."""
+        return (self.frames - 1) * self.stride + 1
+
+    @classmethod
+    def from_dict(cls, name: str, data: Mapping[str, Any]) -> EncoderSpec:
+        known = {"family", "description", "frames", "stride", "embedding_dim", "model", "train"}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise SpecError(f"encoder spec {name!r}: unknown keys {unknown}; allowed: {sorted(known)}")
+        for key in ("family", "description"):
+            if not isinstance(data.get(key), str):
+                raise SpecError(f"encoder spec {name!r}: {key!r} must be a string")
+        spec = cls(
+            name=name,
+            family=data["family"],
+            description=data["description"],
+            frames=int(data.get("frames", 1)),
+            stride=int(data.get("stride", 1)),
+            embedding_dim=int(data.get("embedding_dim", 32)),
+            model=dict(data.get("model", {})),
+            train=dict(data.get("train", {})),
+        )
+        for key in ("frames", "stride", "embedding_dim"):
+            if getattr(spec, key) < 1:
+                raise SpecError(f"encoder spec {name!r}: {key} must be >= 1, got {getattr(spec, key)}")
+        return spec
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A task variant: its description, its tables (dataset, protocol numbers) and its presets."""
+
+    name: str
+    description: str
+    default_preset: str
+    tables: Mapping[str, Any]
+    presets: Mapping[str, Mapping[str, Any]]
+
+    @classmethod
+    def from_dict(cls, name: str, data: Mapping[str, Any]) -> TaskSpec:
+        data = dict(data)
+        presets = data.pop("presets", {})
+        description = data.pop("description", None)
+        default_preset = data.pop("default_preset", None)
+        if not isinstance(description, str):
+            raise SpecError(f"task spec {name!r}: 'description' must be a string")
+        if not presets or default_preset not in presets:
+            raise SpecError(f"task spec {name!r}: 'default_preset' must name one of its [presets.*] tables")
+        return cls(name, description, default_preset, data, presets)
+
+
+def parse_toml(text: str, origin: str) -> dict[str, Any]:
+    """Parse spec text as data (never evaluated); errors name the file."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecError(f"spec file {origin}: not valid TOML ({exc})") from None
+
+
+def flatten(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """{'a': {'b': 1}} -> {'a.b': 1}. Lists and scalars are leaves."""
+    out: dict[str, Any] = {}
+    for key, value in table.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(flatten(value, f"{path}."))
+        else:
+            out[path] = value
+    return out
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """`encoder.embedding_dim=8` -> ('encoder.embedding_dim', 8). Values are TOML literals; a bare word
+    that is not one is taken as a string."""
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise SpecError(f"override {text!r} is not KEY=VALUE (for example encoder.embedding_dim=8)")
+    raw = raw.strip()
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    return key, value
+
+
+def _type_name(value: Any) -> str:
+    return {bool: "bool", int: "int", float: "float", str: "string", list: "list"}.get(type(value), "table")
+
+
+def _coerce(key: str, old: Any, new: Any) -> Any:
+    """The new value if it has the old value's type (an int is accepted where a float was)."""
+    if isinstance(old, bool) or isinstance(new, bool):
+        if isinstance(old, bool) and isinstance(new, bool):
+            return new
+    elif isinstance(old, float) and isinstance(new, int | float):
+        return float(new)
+    elif type(old) is type(new):
+        return new
+    raise SpecError(f"override {key}={json.dumps(new)}: expected a {_type_name(old)} like {json.dumps(old)}")
+
+
+def apply_overrides(
+    config: dict[str, Any], overrides: Iterable[tuple[str, Any]], *, skip_missing_encoder_keys: bool = False
+) -> dict[str, Any]:
+    """A copy of `config` with each dotted key set. Keys must exist already (presets may name encoder
+    keys that a given encoder family lacks: those are skipped when `skip_missing_encoder_keys`)."""
+    config = copy.deepcopy(config)
+    valid = sorted(flatten(config))
+    for key, value in overrides:
+        parts = key.split(".")
+        node: Any = config
+        for i, part in enumerate(parts):
+            if not isinstance(node, dict) or part not in node:
+                if skip_missing_encoder_keys and parts[0] == "encoder":
+                    break
+                raise SpecError(did_you_mean("override key", key, valid))
+            if i == len(parts) - 1:
+                if isinstance(node[part], dict):
+                    raise SpecError(f"override key {key!r} names a table; set one of its keys instead")
+                node[part] = _coerce(key, node[part], value)
+            else:
+                node = node[part]
+    return config
+
+
+def resolve_config(
+    encoder: EncoderSpec, task: TaskSpec, preset: str | None, overrides: Iterable[tuple[str, Any]] = ()
+) -> tuple[str, dict[str, Any]]:
+    """(preset name, resolved config) for this encoder on this task."""
+    preset = preset or task.default_preset
+    if preset not in task.presets:
+        raise SpecError(did_you_mean(f"preset of task {task.name!r}:", preset, list(task.presets)))
+    config = {
+        "encoder": {
+            "name": encoder.name,
+            "family": encoder.family,
+            "frames": encoder.frames,
+            "stride": encoder.stride,
+            "embedding_dim": encoder.embedding_dim,
+            "model": dict(encoder.model),
+            "train": dict(encoder.train),
+        },
+        "task": {"name": task.name, **copy.deepcopy(dict(task.tables))},
+    }
+    config = apply_overrides(
+        config, flatten(task.presets[preset]).items(), skip_missing_encoder_keys=True
+    )
+    overrides = list(overrides)
+    for key, _ in overrides:
+        if key in ("encoder.name", "encoder.family", "task.name"):
+            raise SpecError(f"override key {key!r} cannot be changed; choose another --encoder/--task")
+    return preset, apply_overrides(config, overrides)
+
+
+def encoder_spec_from_config(description: str, config: Mapping[str, Any]) -> EncoderSpec:
+    """The EncoderSpec that a resolved config's `encoder` table describes."""
+    enc = dict(config)
+    name = enc.pop("name")
+    spec = EncoderSpec.from_dict(name, {**enc, "description": description})
+    return spec

@@ -1,0 +1,1 @@
+"""Built-in tasks: each evaluates a frozen encoder and returns metrics."""

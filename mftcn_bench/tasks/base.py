@@ -1,0 +1,34 @@
+"""The task contract: a task names the dataset it needs and turns a frozen encoder into metrics."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from mftcn_bench.data.dataset import Collector, MultiViewDataset
+from mftcn_bench.encoders.base import Encoder
+
+
+@dataclass(frozen=True)
+class TaskResult:
+    """Metrics of one run (floats, or None for "not applicable") and notes shown with the table."""
+
+    metrics: dict[str, float | None]
+    notes: list[str] = field(default_factory=list)
+
+
+class Task(Protocol):
+    """Constructed as `cls(config, seed)` from the resolved `task` table."""
+
+    @property
+    def dataset_config(self) -> Mapping[str, Any]: ...
+
+    @property
+    def collector(self) -> Collector: ...
+
+    def evaluate(self, encoder: Encoder, dataset: MultiViewDataset) -> TaskResult: ...
+
+    def table(self, metrics: Mapping[str, Any]) -> list[dict[str, Any]]:
+        """Rows of the printed result table."""
+        ...
