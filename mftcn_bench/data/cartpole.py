@@ -17,6 +17,17 @@ import numpy as np
 from mftcn_bench.rendering import MultiViewRenderer, ensure_gl
 
 
+def camera_names() -> list[str]:
+    """The cameras the suite's cartpole model defines (read from its XML, no rendering)."""
+    ensure_gl()  # dm_control picks its GL backend on import
+    import mujoco
+    from dm_control.suite import cartpole
+
+    xml, assets = cartpole.get_model_and_assets()
+    model = mujoco.MjModel.from_xml_string(xml, assets)
+    return [model.camera(i).name for i in range(model.ncam)]
+
+
 def collect_episode(config: Mapping[str, Any], index: int) -> dict[str, np.ndarray]:
     """Episode `index` of the dataset `config`; a pure function of (config, index)."""
     ensure_gl()

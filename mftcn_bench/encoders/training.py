@@ -109,6 +109,7 @@ def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: Con
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
     opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    workdir.mkdir(parents=True, exist_ok=True)
     checkpoint = workdir / "train_checkpoint.pt"
     start, members = 0, None
     if checkpoint.exists():

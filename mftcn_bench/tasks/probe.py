@@ -22,7 +22,7 @@ from sklearn.neural_network import MLPRegressor
 from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 
-from mftcn_bench.data.cartpole import collect_episode
+from mftcn_bench.data.cartpole import camera_names, collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder, embed_episode
 from mftcn_bench.errors import SpecError
@@ -74,6 +74,10 @@ class CartpoleProbe:
             self.probe = ProbeConfig(**config["probe"])
         except TypeError as exc:
             raise SpecError(f"task {config['name']!r}: bad [probe] table ({exc})") from None
+        available = camera_names()
+        unknown = [c for c in config["dataset"]["cameras"] if c not in available]
+        if unknown:
+            raise SpecError(f"camera {unknown[0]!r} does not exist in cartpole; available: {', '.join(available)}")
         if self.probe.camera not in config["dataset"]["cameras"]:
             raise SpecError(f"probe camera {self.probe.camera!r} is not one of the dataset's cameras "
                             f"{config['dataset']['cameras']}")

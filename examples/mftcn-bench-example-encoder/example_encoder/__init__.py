@@ -1,0 +1,1 @@
+"""An example third-party encoder package for mftcn-bench."""

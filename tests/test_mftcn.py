@@ -1,0 +1,100 @@
+import numpy as np
+import pytest
+import torch
+
+from mftcn_bench.data.dataset import ensure_dataset
+from mftcn_bench.encoders import training
+from mftcn_bench.encoders.base import ClipBatch, FitBudget, embed_episode
+from mftcn_bench.encoders.mftcn import MfTCNEncoder
+from mftcn_bench.encoders.training import EpisodePool, gather_clips
+from mftcn_bench.errors import TrainingError
+from mftcn_bench.specs import EncoderSpec
+from tests.synthetic import synthetic_collector, synthetic_config
+
+MODEL = {"channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "temporal_channels": 8, "coords": True}
+TRAIN = {"steps": 6, "batch_timesteps": 4, "episodes_per_batch": 2, "alpha": 2, "lr": 1e-3,
+         "weight_decay": 1e-6, "reg_lambda": 0.002, "episode_pool": 2, "pool_refresh_steps": 2,
+         "checkpoint_every": 2, "max_seconds": 0.0}
+
+
+def make(frames=1, stride=1, dim=16, shape=(8, 12), seed=0, **train):
+    spec = EncoderSpec("t", "mftcn", "test", frames, stride, dim, MODEL, {**TRAIN, **train})
+    return MfTCNEncoder(spec, image_shape=shape, seed=seed)
+
+
+@pytest.mark.parametrize("frames,stride,lookback", [(1, 1, 1), (2, 1, 2), (4, 1, 4), (5, 1, 5), (3, 3, 7),
+                                                    (4, 4, 13), (5, 7, 29)])
+def test_output_shapes_for_lookbacks(frames, stride, lookback):
+    encoder = make(frames, stride, dim=8, shape=(24, 32))
+    assert encoder.info.lookback == lookback
+    clips = np.random.default_rng(0).integers(0, 255, (3, frames, 24, 32, 3), dtype=np.uint8)
+    out = encoder.embed(ClipBatch(clips))
+    assert out.shape == (3, 8) and out.dtype == np.float32
+    episode = np.random.default_rng(1).integers(0, 255, (40, 24, 32, 3), dtype=np.uint8)
+    assert embed_episode(encoder, episode).shape == (40, 8)
+
+
+def test_episode_embedding_equals_embedding_each_clip():
+    encoder = make(frames=3, stride=2)
+    frames = np.random.default_rng(0).integers(0, 255, (15, 8, 12, 3), dtype=np.uint8)
+    fast = encoder.embed_episode(frames)
+    for t in (0, 1, 4, 14):
+        clip = frames[[max(t - 4, 0), max(t - 2, 0), t]][None]
+        assert np.allclose(fast[t], encoder.embed(ClipBatch(clip))[0], atol=1e-5)
+
+
+def test_gathered_clip_holds_frames_t_minus_ks_of_one_view(tmp_path):
+    dataset = ensure_dataset(tmp_path, synthetic_config(), synthetic_collector, show_progress=False)
+    pool = EpisodePool(dataset, size=3, refresh_steps=0, rng=np.random.default_rng(0))
+    episode = sorted(pool.episodes)[0]
+    clips = gather_clips(pool, np.array([episode, episode]), np.array([9, 2]), frames=3, stride=3)
+    assert clips.shape == (2, 2, 3, 8, 12, 3)
+    for view in range(2):
+        values = clips[view, :, :, 0, 0, 0].astype(int) - view * 100 - episode * 7
+        assert values.tolist() == [[3, 6, 9], [0, 0, 2]]
+
+
+def test_save_load_roundtrip(tmp_path):
+    a, b = make(frames=2, seed=0), make(frames=2, seed=1)
+    clips = np.random.default_rng(0).integers(0, 255, (2, 2, 8, 12, 3), dtype=np.uint8)
+    assert not np.allclose(a.embed(ClipBatch(clips)), b.embed(ClipBatch(clips)))
+    a.save(tmp_path / "m.pt")
+    b.load(tmp_path / "m.pt")
+    assert np.array_equal(a.embed(ClipBatch(clips)), b.embed(ClipBatch(clips)))
+
+
+def test_training_resumes_bitwise_after_interruption(tmp_path):
+    dataset = ensure_dataset(tmp_path / "d", synthetic_config(), synthetic_collector, show_progress=False)
+    straight = make(frames=2)
+    straight.fit(dataset, FitBudget(6), lambda *a: None, tmp_path / "w1")
+
+    class Killed(Exception):
+        pass
+
+    def die_at_5(step, total, stats):
+        if step == 5:
+            raise Killed
+
+    interrupted = make(frames=2)
+    with pytest.raises(Killed):
+        interrupted.fit(dataset, FitBudget(6), die_at_5, tmp_path / "w2")
+    assert (tmp_path / "w2" / "train_checkpoint.pt").exists()
+    resumed = make(frames=2)
+    resumed.fit(dataset, FitBudget(6), lambda *a: None, tmp_path / "w2")
+    for p, q in zip(straight.net.parameters(), resumed.net.parameters(), strict=True):
+        assert torch.equal(p, q)
+
+
+def test_nan_loss_stops_with_the_step(tmp_path, monkeypatch):
+    dataset = ensure_dataset(tmp_path, synthetic_config(), synthetic_collector, show_progress=False)
+    monkeypatch.setattr(training, "multiview_npairs_loss", lambda e, r: e.sum() * float("nan"))
+    with pytest.raises(TrainingError, match="at step 0"):
+        make().fit(dataset, FitBudget(3), lambda *a: None, tmp_path / "w")
+
+
+def test_training_lowers_the_loss(tmp_path):
+    dataset = ensure_dataset(tmp_path, synthetic_config(episode_length=60), synthetic_collector,
+                             show_progress=False)
+    losses = []
+    make(frames=2).fit(dataset, FitBudget(40), lambda s, t, st: losses.append(st["loss"]), tmp_path / "w")
+    assert np.mean(losses[-5:]) < np.mean(losses[:5])

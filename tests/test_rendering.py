@@ -1,0 +1,35 @@
+import numpy as np
+import pytest
+
+from mftcn_bench import rendering
+from mftcn_bench.data.cartpole import collect_episode
+from mftcn_bench.errors import DataError, SystemRequirementError
+
+CONFIG = {"seed": 3, "cameras": ["fixed", "lookatcart"], "height": 24, "width": 32, "episode_length": 12,
+          "action_keep_prob": 0.5, "action_repeat": 1, "render": {"shadowsize": 16, "offsamples": 0},
+          "init": {"x_range": 1.0, "x_dot_std": 0.5, "theta_dot_std": 1.0}}
+
+
+def test_cartpole_episode_is_deterministic_multiview_and_records_state():
+    a, b = collect_episode(CONFIG, 0), collect_episode(CONFIG, 0)
+    assert a["frames"].shape == (2, 12, 24, 32, 3) and a["frames"].dtype == np.uint8
+    assert np.array_equal(a["frames"], b["frames"]) and np.array_equal(a["state"], b["state"])
+    assert not np.array_equal(a["frames"][0], a["frames"][1]), "the two cameras see different images"
+    assert not np.array_equal(a["state"], collect_episode(CONFIG, 1)["state"])
+    assert a["state"].shape == (12, 4) and a["action"].shape == (12, 1)
+    assert np.abs(a["action"]).max() <= 1.0
+    # positions integrate velocities: x_{t+1} - x_t ~ dt * x_dot (dt = 0.01 s)
+    assert np.allclose(np.diff(a["state"][:, 0]), 0.01 * a["state"][1:, 2], atol=0.02)
+
+
+def test_unknown_camera_names_the_available_ones():
+    with pytest.raises(DataError, match="camera 'top' does not exist in this domain; available: fixed, lookatcart"):
+        collect_episode({**CONFIG, "cameras": ["fixed", "top"]}, 0)
+
+
+def test_missing_gl_library_is_one_line_with_the_install_command(monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    monkeypatch.setattr(rendering.ctypes.util, "find_library", lambda name: None)
+    with pytest.raises(SystemRequirementError, match="apt-get install -y libegl1") as info:
+        rendering.ensure_gl()
+    assert "\n" not in str(info.value)

@@ -1,0 +1,62 @@
+import pytest
+
+from mftcn_bench.errors import SpecError
+from mftcn_bench.specs import EncoderSpec, TaskSpec, apply_overrides, parse_override, parse_toml, resolve_config
+
+ENCODER = EncoderSpec("e", "mftcn", "d", 4, 1, 32, {"coords": True}, {"steps": 100, "lr": 0.001})
+TASK = TaskSpec("t", "d", "quick", {"dataset": {"episodes": 10, "cameras": ["a"]}, "probe": {"epochs": 5}},
+                {"quick": {"task": {"dataset": {"episodes": 4}}, "encoder": {"train": {"steps": 7, "x": 1}}},
+                 "paper": {}})
+
+
+def test_preset_then_overrides():
+    preset, config = resolve_config(ENCODER, TASK, None, [("encoder.embedding_dim", 8),
+                                                          ("task.probe.epochs", 9)])
+    assert preset == "quick"
+    assert config["task"]["dataset"]["episodes"] == 4
+    assert config["encoder"]["train"]["steps"] == 7
+    assert config["encoder"]["embedding_dim"] == 8 and config["task"]["probe"]["epochs"] == 9
+    assert resolve_config(ENCODER, TASK, "paper")[1]["task"]["dataset"]["episodes"] == 10
+
+
+def test_unknown_preset_and_key_suggest_valid_ones():
+    with pytest.raises(SpecError, match="did you mean paper"):
+        resolve_config(ENCODER, TASK, "papr")
+    with pytest.raises(SpecError, match="did you mean encoder.embedding_dim"):
+        resolve_config(ENCODER, TASK, None, [("encoder.embeding_dim", 8)])
+
+
+def test_override_types():
+    config = {"a": {"i": 1, "f": 0.5, "b": True, "s": "x", "l": [1]}}
+    assert apply_overrides(config, [("a.f", 2)])["a"]["f"] == 2.0
+    for key, value in (("a.i", "two"), ("a.i", 1.5), ("a.b", 1), ("a.s", 3), ("a.i", True)):
+        with pytest.raises(SpecError, match="expected a"):
+            apply_overrides(config, [(key, value)])
+    with pytest.raises(SpecError, match="names a table"):
+        apply_overrides(config, [("a", 1)])
+
+
+def test_parse_override_values():
+    assert parse_override("encoder.embedding_dim=8") == ("encoder.embedding_dim", 8)
+    assert parse_override("task.x=0.5") == ("task.x", 0.5)
+    assert parse_override("task.c=fixed") == ("task.c", "fixed")
+    assert parse_override("task.l=[1, 2]") == ("task.l", [1, 2])
+    with pytest.raises(SpecError, match="KEY=VALUE"):
+        parse_override("encoder.embedding_dim")
+
+
+def test_identity_keys_cannot_be_overridden():
+    with pytest.raises(SpecError, match="cannot be changed"):
+        resolve_config(ENCODER, TASK, None, [("encoder.family", "x")])
+
+
+def test_spec_validation():
+    with pytest.raises(SpecError, match="unknown keys"):
+        EncoderSpec.from_dict("e", {"family": "f", "description": "d", "frams": 2})
+    with pytest.raises(SpecError, match="frames must be >= 1"):
+        EncoderSpec.from_dict("e", {"family": "f", "description": "d", "frames": 0})
+    with pytest.raises(SpecError, match="default_preset"):
+        TaskSpec.from_dict("t", {"description": "d", "default_preset": "x", "presets": {"y": {}}})
+    with pytest.raises(SpecError, match="not valid TOML"):
+        parse_toml("a = ", "x.toml")
+    assert EncoderSpec.from_dict("e", {"family": "f", "description": "d", "frames": 5, "stride": 7}).lookback == 29
