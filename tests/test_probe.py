@@ -35,8 +35,9 @@ class NoiseEncoder(StateEncoder):
 
 
 def probe_config():
-    return {"name": "cartpole-probe", "dataset": synthetic_config(train_episodes=6, episode_length=200),
-            "probe": {"camera": "a", "hidden": [32, 32, 32], "lr": 0.003, "epochs": 200, "batch_size": 64,
+    dataset = synthetic_config(train_episodes=6, episode_length=200, cameras=["fixed", "lookatcart"])
+    return {"name": "cartpole-probe", "dataset": dataset,
+            "probe": {"camera": "fixed", "hidden": [32, 32, 32], "lr": 0.003, "epochs": 200, "batch_size": 64,
                       "tol": 1e-6}}
 
 

@@ -23,6 +23,7 @@ from torch import nn
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import ClipBatch, EncoderInfo, FitBudget, ProgressFn
+from mftcn_bench.encoders.streaming import StreamingEmbedder
 from mftcn_bench.encoders.training import ContrastiveTrainConfig, train_multiview
 from mftcn_bench.errors import BenchError, SpecError
 from mftcn_bench.specs import EncoderSpec
@@ -144,6 +145,11 @@ class MfTCNEncoder:
         index = torch.from_numpy(clip_indices(np.arange(len(frames)), self.spec.frames, self.spec.stride))
         out = [self.net.head(features[index[i:i + batch_size]]) for i in range(0, len(index), batch_size)]
         return torch.cat(out).numpy().astype(np.float32, copy=False)
+
+    def streaming(self, num_envs: int) -> StreamingEmbedder:
+        """A streaming embedder over `num_envs` environments: one base-CNN pass per new frame, per-frame
+        features of the lookback window kept in a ring buffer (see `streaming.py`)."""
+        return StreamingEmbedder(self.net, self.spec.frames, self.spec.stride, num_envs)
 
     def save(self, path: Path) -> None:
         tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")

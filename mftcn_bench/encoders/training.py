@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -94,18 +95,28 @@ def _save_checkpoint(path: Path, net: torch.nn.Module, opt: torch.optim.Optimize
     os.replace(tmp, path)
 
 
-def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: ContrastiveTrainConfig,
-                    budget: FitBudget, progress: ProgressFn, workdir: Path, *, frames: int, stride: int,
-                    seed: int) -> dict[str, float]:
-    """Train `net` with multi-view n-pairs; returns {'final_loss', 'steps', 'seconds'}."""
-    if len(dataset.cameras) < 2:
-        raise SpecError("time-contrastive training needs a dataset with at least two camera views")
-    lookback = (frames - 1) * stride + 1
-    shortest = min(dataset.episode_length(i) for i in dataset.episodes("train"))
-    if lookback > shortest:
-        raise SpecError(f"lookback of {lookback} frames is longer than the shortest train episode "
-                        f"({shortest} frames); use a smaller frames/stride or longer episodes")
-    min_gap = max(config.alpha, lookback)
+class LoopConfig(Protocol):
+    """The `[train]` keys every trainer built on `run_training` has."""
+
+    lr: float
+    weight_decay: float
+    episode_pool: int
+    pool_refresh_steps: int
+    checkpoint_every: int
+
+
+# batch_loss(pool, rng) -> (loss, extra statistics for the progress report)
+BatchLoss = Callable[[EpisodePool, np.random.Generator], tuple[torch.Tensor, dict[str, float]]]
+
+
+def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopConfig, budget: FitBudget,
+                 progress: ProgressFn, workdir: Path, *, seed: int, batch_loss: BatchLoss) -> dict[str, float]:
+    """Adam on `batch_loss` for `budget.steps` steps, drawing batches from a pool of train episodes.
+
+    Checkpoints (model, optimizer, step, pool members, random states) go to `workdir/train_checkpoint.pt`
+    every `checkpoint_every` steps and training resumes from there bit for bit. A non-finite loss stops
+    training with the step. Returns {'final_loss', 'steps', 'seconds'}.
+    """
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
     opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
@@ -115,28 +126,20 @@ def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: Con
     if checkpoint.exists():
         try:
             state = torch.load(checkpoint, weights_only=True)
+            net.load_state_dict(state["model"])
+            opt.load_state_dict(state["optimizer"])
         except Exception as exc:  # noqa: BLE001 - a truncated or foreign file
             raise TrainingError(f"training checkpoint {checkpoint} cannot be loaded ({type(exc).__name__}); "
                                 f"delete it to train from the start") from None
-        net.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
         start, members = int(state["step"]), [int(i) for i in state["pool"]]
         torch.set_rng_state(state["torch_rng"])
         rng.bit_generator.state = json.loads(state["numpy_rng"])
     pool = EpisodePool(dataset, config.episode_pool, config.pool_refresh_steps, rng, members)
     net.train()
-    began, loss_value, step = time.monotonic(), float("nan"), start
-    limit = budget.max_seconds or None
+    began, loss_value, done = time.monotonic(), float("nan"), start
     for step in range(start, budget.steps):
         pool.step(step)
-        lengths = {i: ep.length for i, ep in pool.episodes.items()}
-        plan = plan_batch(rng, sorted(pool.episodes), lengths, config.batch_timesteps,
-                          config.episodes_per_batch, min_gap)
-        clips = gather_clips(pool, plan.episodes, plan.times, frames, stride)
-        views, count = clips.shape[:2]
-        batch = torch.from_numpy(clips.reshape(views * count, *clips.shape[2:])).permute(0, 1, 4, 2, 3)
-        embeddings = net(batch).reshape(views, count, -1)
-        loss = multiview_npairs_loss(embeddings, config.reg_lambda)
+        loss, stats = batch_loss(pool, rng)
         loss_value = float(loss.detach())
         if not np.isfinite(loss_value):
             raise TrainingError(f"training loss became {loss_value} at step {step}; no result was written "
@@ -144,12 +147,37 @@ def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: Con
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        progress(step + 1, budget.steps, {"loss": loss_value})
         done = step + 1
+        progress(done, budget.steps, {"loss": loss_value, **stats})
         if config.checkpoint_every and done % config.checkpoint_every == 0 and done < budget.steps:
             _save_checkpoint(checkpoint, net, opt, done, rng, pool)
-        if limit is not None and time.monotonic() - began > limit:
+        if budget.max_seconds and time.monotonic() - began > budget.max_seconds:
             break
     net.eval()
-    return {"final_loss": loss_value, "steps": float(step + 1 if budget.steps else 0),
-            "seconds": time.monotonic() - began}
+    return {"final_loss": loss_value, "steps": float(done), "seconds": time.monotonic() - began}
+
+
+def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: ContrastiveTrainConfig,
+                    budget: FitBudget, progress: ProgressFn, workdir: Path, *, frames: int, stride: int,
+                    seed: int) -> dict[str, float]:
+    """Train `net` (uint8 clips [B, n, 3, H, W] -> [B, D]) with multi-view n-pairs."""
+    if len(dataset.cameras) < 2:
+        raise SpecError("time-contrastive training needs a dataset with at least two camera views")
+    lookback = (frames - 1) * stride + 1
+    shortest = min(dataset.episode_length(i) for i in dataset.episodes("train"))
+    if lookback > shortest:
+        raise SpecError(f"lookback of {lookback} frames is longer than the shortest train episode "
+                        f"({shortest} frames); use a smaller frames/stride or longer episodes")
+    min_gap = max(config.alpha, lookback)
+
+    def batch_loss(pool: EpisodePool, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, float]]:
+        lengths = {i: ep.length for i, ep in pool.episodes.items()}
+        plan = plan_batch(rng, sorted(pool.episodes), lengths, config.batch_timesteps,
+                          config.episodes_per_batch, min_gap)
+        clips = gather_clips(pool, plan.episodes, plan.times, frames, stride)
+        views, count = clips.shape[:2]
+        batch = torch.from_numpy(clips.reshape(views * count, *clips.shape[2:])).permute(0, 1, 4, 2, 3)
+        embeddings = net(batch).reshape(views, count, -1)
+        return multiview_npairs_loss(embeddings, config.reg_lambda), {}
+
+    return run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss)
