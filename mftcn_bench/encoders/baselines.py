@@ -16,7 +16,6 @@
 from __future__ import annotations
 
 import hashlib
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,10 +23,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from mftcn_bench.data.clips import clip_indices
-from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.encoders.base import ClipBatch, EncoderInfo, FitBudget, ProgressFn
-from mftcn_bench.encoders.frame_cnn import CNNConfig, load_network, parse_table, save_network, to_images
+from mftcn_bench.encoders.base import ClipBatch
+from mftcn_bench.encoders.common import FrameHeadEncoder, SpecEncoder, load_payload, parse_table, save_payload
+from mftcn_bench.encoders.frame_cnn import CNNConfig
 from mftcn_bench.encoders.mftcn import BaseCNN
 from mftcn_bench.errors import BenchError, SpecError
 from mftcn_bench.specs import EncoderSpec
@@ -42,20 +40,6 @@ class NoTrainConfig:
     ignored."""
 
     steps: int = 0
-
-
-def _save_small(path: Path, payload: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
-
-
-def _load_small(path: Path) -> dict:
-    try:
-        return torch.load(path, weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - truncated or foreign file
-        raise BenchError(f"encoder checkpoint {path} cannot be loaded ({type(exc).__name__}); "
-                         f"delete it to build it again") from None
 
 
 @dataclass(frozen=True)
@@ -76,26 +60,13 @@ def clip_noise(clip: np.ndarray, seed: int, dim: int, std: float) -> np.ndarray:
     return (rng.standard_normal(dim) * std).astype(np.float32)
 
 
-class RandomStateEncoder:
+class RandomStateEncoder(SpecEncoder):
     """Noise of a fixed size: the lower bound (a policy or probe that sees nothing of the state)."""
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
+        super().__init__(spec, image_shape, seed)
         self.model_config = parse_table(RandomStateModelConfig, spec.name, "model", spec.model)
         parse_table(NoTrainConfig, spec.name, "train", spec.train)
-        self.spec, self.image_shape, self.seed = spec, tuple(image_shape), seed
-
-    @property
-    def info(self) -> EncoderInfo:
-        return EncoderInfo(self.spec.name, self.spec.frames, self.spec.stride, self.image_shape,
-                           self.spec.embedding_dim, 0)
-
-    @property
-    def needs_fit(self) -> bool:
-        return False
-
-    def fit(self, dataset: MultiViewDataset, budget: FitBudget, progress: ProgressFn,
-            workdir: Path) -> dict[str, float]:
-        return {"steps": 0.0}
 
     def embed(self, clips: ClipBatch) -> np.ndarray:
         dim, std = self.spec.embedding_dim, self.model_config.std
@@ -103,10 +74,10 @@ class RandomStateEncoder:
         return np.stack(out) if out else np.zeros((0, dim), np.float32)
 
     def save(self, path: Path) -> None:
-        _save_small(path, {"seed": self.seed, "embedding_dim": self.spec.embedding_dim})
+        save_payload(path, {"seed": self.seed, "embedding_dim": self.spec.embedding_dim})
 
     def load(self, path: Path) -> None:
-        state = _load_small(path)
+        state = load_payload(path)
         if int(state.get("embedding_dim", -1)) != self.spec.embedding_dim:
             raise SpecError(f"encoder checkpoint {path} is for embedding_dim {state.get('embedding_dim')}, "
                             f"not {self.spec.embedding_dim}")
@@ -126,26 +97,13 @@ def state_embedding(state: np.ndarray) -> np.ndarray:
     return state
 
 
-class TrueStateEncoder:
+class TrueStateEncoder(SpecEncoder):
     """The simulator's state as the embedding: the upper bound."""
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
+        super().__init__(spec, image_shape, seed)
         parse_table(EmptyModelConfig, spec.name, "model", spec.model)
         parse_table(NoTrainConfig, spec.name, "train", spec.train)
-        self.spec, self.image_shape, self.seed = spec, tuple(image_shape), seed
-
-    @property
-    def info(self) -> EncoderInfo:
-        return EncoderInfo(self.spec.name, self.spec.frames, self.spec.stride, self.image_shape,
-                           self.spec.embedding_dim, 0)
-
-    @property
-    def needs_fit(self) -> bool:
-        return False
-
-    def fit(self, dataset: MultiViewDataset, budget: FitBudget, progress: ProgressFn,
-            workdir: Path) -> dict[str, float]:
-        return {"steps": 0.0}
 
     def embed(self, clips: ClipBatch) -> np.ndarray:
         if clips.state is None:
@@ -162,10 +120,10 @@ class TrueStateEncoder:
         return out
 
     def save(self, path: Path) -> None:
-        _save_small(path, {"embedding_dim": self.spec.embedding_dim})
+        save_payload(path, {"embedding_dim": self.spec.embedding_dim})
 
     def load(self, path: Path) -> None:
-        _load_small(path)
+        load_payload(path)
 
 
 class PixelsCNNNet(nn.Module):
@@ -191,45 +149,12 @@ class PixelsCNNNet(nn.Module):
         return self.head(features.reshape(b, n, -1))
 
 
-class PixelsCNNEncoder:
+class PixelsCNNEncoder(FrameHeadEncoder):
     """Raw pixels through a CNN: untrained (seeded random weights) unless a control task trains `net`."""
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
+        super().__init__(spec, image_shape, seed)
         self.model_config = parse_table(CNNConfig, spec.name, "model", spec.model)
         parse_table(NoTrainConfig, spec.name, "train", spec.train)
-        self.spec, self.image_shape, self.seed = spec, tuple(image_shape), seed
         torch.manual_seed(seed)
         self.net = PixelsCNNNet(self.model_config, spec.frames, spec.embedding_dim).eval()
-
-    @property
-    def info(self) -> EncoderInfo:
-        return EncoderInfo(self.spec.name, self.spec.frames, self.spec.stride, self.image_shape,
-                           self.spec.embedding_dim, sum(p.numel() for p in self.net.parameters()))
-
-    @property
-    def needs_fit(self) -> bool:
-        return False
-
-    def fit(self, dataset: MultiViewDataset, budget: FitBudget, progress: ProgressFn,
-            workdir: Path) -> dict[str, float]:
-        return {"steps": 0.0}
-
-    @torch.no_grad()
-    def embed(self, clips: ClipBatch) -> np.ndarray:
-        return self.net(to_images(clips.frames)).numpy().astype(np.float32, copy=False)
-
-    @torch.no_grad()
-    def embed_episode(self, frames: np.ndarray, state: np.ndarray | None = None,
-                      batch_size: int = 256) -> np.ndarray:
-        """Embeddings of the clips ending at every frame of one view [T, H, W, 3], one CNN pass a frame."""
-        images = to_images(frames)
-        features = torch.cat([self.net.frame_features(images[i:i + batch_size])
-                              for i in range(0, len(images), batch_size)])
-        index = torch.from_numpy(clip_indices(np.arange(len(frames)), self.spec.frames, self.spec.stride))
-        return self.net.head(features[index]).numpy().astype(np.float32, copy=False)
-
-    def save(self, path: Path) -> None:
-        save_network(path, self.net, self.image_shape)
-
-    def load(self, path: Path) -> None:
-        load_network(path, self.net, self.image_shape)

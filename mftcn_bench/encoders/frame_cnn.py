@@ -1,24 +1,20 @@
-"""Pieces shared by the single-frame encoders (pixels-cnn, PVE, Shuffle and Learn).
+"""Frame-CNN pieces shared by the single-frame encoders (pixels-cnn, PVE, Shuffle and Learn).
 
+- `CNNConfig`: the convolution part of a `[model]` table (the mfTCN base CNN's layers).
 - `FrameNet`: the mfTCN base CNN (`BaseCNN`, with its optional coordinate channels), a spatial average
   and a linear layer: one uint8 frame -> a vector.
-- `parse_table`: a spec's `[model]` or `[train]` table -> a frozen dataclass; an unknown or missing key is
-  a one-line `SpecError`.
-- `train_single_view`: Adam on a loss computed from a pool of decoded train episodes (the mfTCN trainer's
-  `EpisodePool`), with the same atomic checkpoints and bitwise resume as `training.train_multiview`, and
-  a NaN loss stopping with the step.
-- `save_network` / `load_network`: atomic checkpoint of a module's weights plus the image shape.
+- `SingleViewTrainConfig` / `train_single_view`: Adam on a loss computed from a pool of decoded train
+  episodes (the mfTCN trainer's `EpisodePool`), with the same atomic checkpoints and bitwise resume as
+  `training.train_multiview`, and a NaN loss stopping with the step.
+
+Table parsing, checkpoints and the encoder base class are in `common.py`.
 """
 
 from __future__ import annotations
 
-import os
-from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -26,21 +22,7 @@ from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
 from mftcn_bench.encoders.mftcn import BaseCNN, MfTCNModelConfig
 from mftcn_bench.encoders.training import BatchLoss, run_training
-from mftcn_bench.errors import BenchError, SpecError
-
-T = TypeVar("T")
-
-
-def parse_table(cls: type[T], encoder: str, section: str, table: Mapping[str, Any]) -> T:
-    """A frozen dataclass from a spec table; unknown or missing keys are a one-line SpecError."""
-    known = [f.name for f in fields(cls)]  # type: ignore[arg-type] - cls is a dataclass
-    unknown = sorted(set(table) - set(known))
-    if unknown:
-        raise SpecError(f"encoder {encoder!r}: unknown key(s) {unknown} in [{section}]; allowed: {sorted(known)}")
-    try:
-        return cls(**dict(table))
-    except TypeError as exc:
-        raise SpecError(f"encoder {encoder!r}: bad [{section}] table ({exc})") from None
+from mftcn_bench.errors import SpecError
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -76,38 +58,6 @@ class FrameNet(nn.Module):
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self.fc(self.pooled(images))
-
-
-def to_images(frames: np.ndarray) -> torch.Tensor:
-    """uint8 numpy frames [..., H, W, 3] -> uint8 tensor [..., 3, H, W]."""
-    tensor = torch.from_numpy(np.ascontiguousarray(frames))
-    return tensor.movedim(-1, -3)
-
-
-def check_image_shape(expected: tuple[int, int], dataset: MultiViewDataset) -> None:
-    if dataset.image_shape != expected:
-        raise SpecError(f"encoder built for {expected} images cannot train on {dataset.image_shape} frames")
-
-
-def save_network(path: Path, net: nn.Module, image_shape: tuple[int, int]) -> None:
-    """Weights and image shape, written to a temporary file and renamed."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save({"model": net.state_dict(), "image_shape": list(image_shape)}, tmp)
-    os.replace(tmp, path)
-
-
-def load_network(path: Path, net: nn.Module, image_shape: tuple[int, int]) -> None:
-    """Inverse of `save_network`; a bad file or another image shape is a one-line error."""
-    try:
-        state = torch.load(path, weights_only=True)
-        net.load_state_dict(state["model"])
-    except Exception as exc:  # noqa: BLE001 - truncated, foreign or mismatched file
-        raise BenchError(f"encoder checkpoint {path} cannot be loaded ({type(exc).__name__}); "
-                         f"delete it to train again") from None
-    if tuple(state["image_shape"]) != tuple(image_shape):
-        raise SpecError(f"encoder checkpoint {path} was trained on {tuple(state['image_shape'])} images, "
-                        f"not {tuple(image_shape)}")
-    net.eval()
 
 
 @dataclass(frozen=True, kw_only=True)

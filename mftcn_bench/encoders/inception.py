@@ -14,7 +14,6 @@ x * (std / 0.5) + (mean - 0.5) / 0.5; composed, that is (x / 255 - 0.5) / 0.5, w
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,8 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.encoders.base import ClipBatch, EncoderInfo, FitBudget, ProgressFn
+from mftcn_bench.encoders.base import ClipBatch
+from mftcn_bench.encoders.common import SpecEncoder, map_batches, parse_table, save_payload, to_images
 from mftcn_bench.encoders.mftcn import to_unit_range
 from mftcn_bench.errors import BenchError, SpecError
 from mftcn_bench.specs import EncoderSpec
@@ -129,21 +128,18 @@ def _weights_help(name: str) -> str:
             f"--set encoder.model.weights=~/.mftcn-bench/weights/{WEIGHTS_FILE}`")
 
 
-class InceptionEncoder:
+class InceptionEncoder(SpecEncoder):
     """Frozen ImageNet InceptionV3 Mixed_5d features, spatially averaged (one frame a clip)."""
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
-        try:
-            self.model_config = InceptionModelConfig(**spec.model)
-        except TypeError as exc:
-            raise SpecError(f"encoder {spec.name!r}: bad [model] table ({exc})") from None
+        super().__init__(spec, image_shape, seed)
+        self.model_config = parse_table(InceptionModelConfig, spec.name, "model", spec.model)
         if spec.train:
             raise SpecError(f"encoder {spec.name!r} is not trained: its [train] table must be empty, "
                             f"got keys {sorted(spec.train)}")
         if spec.frames != 1 or spec.embedding_dim != FEATURE_DIM:
             raise SpecError(f"encoder {spec.name!r}: frames must be 1 and embedding_dim {FEATURE_DIM} "
                             f"(Mixed_5d's channels), got {spec.frames} and {spec.embedding_dim}")
-        self.spec, self.image_shape, self.seed = spec, tuple(image_shape), seed
         weights = self.model_config.weights
         if not weights:
             raise BenchError(f"encoder {spec.name!r} needs ImageNet weights: {_weights_help(spec.name)}")
@@ -154,19 +150,6 @@ class InceptionEncoder:
         load_torchvision_weights(self.net, path)
         self.net.eval().requires_grad_(False)
 
-    @property
-    def info(self) -> EncoderInfo:
-        return EncoderInfo(self.spec.name, self.spec.frames, self.spec.stride, self.image_shape,
-                           self.spec.embedding_dim, sum(p.numel() for p in self.net.parameters()))
-
-    @property
-    def needs_fit(self) -> bool:
-        return False
-
-    def fit(self, dataset: MultiViewDataset, budget: FitBudget, progress: ProgressFn,
-            workdir: Path) -> dict[str, float]:
-        return {}
-
     def preprocess(self, images: torch.Tensor) -> torch.Tensor:
         """uint8 [N, 3, H, W] -> float [N, 3, S, S] in [-1, 1], S = input_size."""
         size = self.model_config.input_size
@@ -175,24 +158,20 @@ class InceptionEncoder:
     @torch.no_grad()
     def features(self, images: torch.Tensor) -> torch.Tensor:
         """uint8 [N, 3, H, W] -> spatially averaged Mixed_5d features [N, 288]."""
-        step = self.model_config.batch_size
-        parts = [self.net(self.preprocess(images[i:i + step])).mean(dim=(2, 3))
-                 for i in range(0, len(images), step)]
-        return torch.cat(parts) if parts else torch.zeros(0, FEATURE_DIM)
+        if not len(images):
+            return torch.zeros(0, FEATURE_DIM)
+        return map_batches(lambda batch: self.net(self.preprocess(batch)).mean(dim=(2, 3)), images,
+                           self.model_config.batch_size)
 
     def embed(self, clips: ClipBatch) -> np.ndarray:
-        images = torch.from_numpy(np.ascontiguousarray(clips.frames[:, -1])).permute(0, 3, 1, 2)
-        return self.features(images).numpy().astype(np.float32, copy=False)
+        return self.features(to_images(clips.frames[:, -1])).numpy().astype(np.float32, copy=False)
 
     def embed_episode(self, frames: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
         """One forward pass per frame of one view [T, H, W, 3] -> [T, 288]."""
-        images = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)
-        return self.features(images).numpy().astype(np.float32, copy=False)
+        return self.features(to_images(frames)).numpy().astype(np.float32, copy=False)
 
     def save(self, path: Path) -> None:
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        torch.save(self.net.state_dict(), tmp)
-        os.replace(tmp, path)
+        save_payload(path, self.net.state_dict())
 
     def load(self, path: Path) -> None:
         load_torchvision_weights(self.net, path)

@@ -3,7 +3,8 @@ average, fully connected layer to the embedding; trained multi-view with the n-p
 
 The 3D convolution's temporal kernel spans exactly the clip's n frames (already taken at stride s), so
 the embedding of a clip is `head(stack(base(I_{t-(n-1)s}), ..., base(I_t)))`: per-frame features are
-computed once per frame and shared by every clip that contains it (see `embed_episode`).
+computed once per frame and shared by every clip that contains it (`embed_episode`, from
+`common.FrameHeadEncoder`).
 
 The base CNN gets two extra input channels holding each pixel's normalised x and y coordinates
 (CoordConv). The paper's spatial average otherwise discards where things are in the image, and the
@@ -12,20 +13,18 @@ cartpole's position is what a control policy needs most; the channels are a spec
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import nn
 
-from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.encoders.base import ClipBatch, EncoderInfo, FitBudget, ProgressFn
+from mftcn_bench.encoders.base import FitBudget, ProgressFn
+from mftcn_bench.encoders.common import FrameHeadEncoder, check_image_shape, parse_table
 from mftcn_bench.encoders.streaming import StreamingEmbedder
 from mftcn_bench.encoders.training import ContrastiveTrainConfig, train_multiview
-from mftcn_bench.errors import BenchError, SpecError
+from mftcn_bench.errors import SpecError
 from mftcn_bench.specs import EncoderSpec
 
 
@@ -99,71 +98,33 @@ class MfTCNNet(nn.Module):
         return self.head(features.reshape(b, n, *features.shape[1:]))
 
 
-class MfTCNEncoder:
+class MfTCNEncoder(FrameHeadEncoder):
     """The mfTCN family (mftcn1 ... mftcn29): clip shape and sizes from the spec."""
 
+    needs_fit = True
+
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
-        try:
-            self.model_config = MfTCNModelConfig(**spec.model)
-        except TypeError as exc:
-            raise SpecError(f"encoder {spec.name!r}: bad [model] table ({exc})") from None
-        self.train_config = ContrastiveTrainConfig.from_table(spec.name, dict(spec.train))
-        self.spec, self.image_shape, self.seed = spec, tuple(image_shape), seed
+        super().__init__(spec, image_shape, seed)
+        self.configure(spec)
         torch.manual_seed(seed)
-        self.net = MfTCNNet(self.model_config, spec.frames, spec.embedding_dim).eval()
+        self.net = self.build_net().eval()
 
-    @property
-    def info(self) -> EncoderInfo:
-        return EncoderInfo(self.spec.name, self.spec.frames, self.spec.stride, self.image_shape,
-                           self.spec.embedding_dim, sum(p.numel() for p in self.net.parameters()))
+    def configure(self, spec: EncoderSpec) -> None:
+        """Validate the spec and set `model_config` and `train_config` (a subclass reads its own tables)."""
+        self.model_config = parse_table(MfTCNModelConfig, spec.name, "model", spec.model)
+        self.train_config = ContrastiveTrainConfig.from_table(spec.name, dict(spec.train))
 
-    @property
-    def needs_fit(self) -> bool:
-        return True
+    def build_net(self) -> nn.Module:
+        """The network, built right after seeding torch with the encoder's seed."""
+        return MfTCNNet(self.model_config, self.spec.frames, self.spec.embedding_dim)
 
     def fit(self, dataset: MultiViewDataset, budget: FitBudget, progress: ProgressFn,
             workdir: Path) -> dict[str, float]:
-        if dataset.image_shape != self.image_shape:
-            raise SpecError(f"encoder built for {self.image_shape} images cannot train on "
-                            f"{dataset.image_shape} frames")
+        check_image_shape(self.image_shape, dataset)
         return train_multiview(self.net, dataset, self.train_config, budget, progress, workdir,
                                frames=self.spec.frames, stride=self.spec.stride, seed=self.seed)
-
-    @torch.no_grad()
-    def embed(self, clips: ClipBatch) -> np.ndarray:
-        frames = torch.from_numpy(np.ascontiguousarray(clips.frames)).permute(0, 1, 4, 2, 3)
-        return self.net(frames).numpy().astype(np.float32, copy=False)
-
-    @torch.no_grad()
-    def embed_episode(self, frames: np.ndarray, state: np.ndarray | None = None,
-                      batch_size: int = 256) -> np.ndarray:
-        """Embeddings of the clips ending at every frame of one view [T, H, W, 3]: one base-CNN pass
-        per frame, then the temporal head over gathered features."""
-        images = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)
-        features = torch.cat([self.net.frame_features(images[i:i + batch_size])
-                              for i in range(0, len(images), batch_size)])
-        index = torch.from_numpy(clip_indices(np.arange(len(frames)), self.spec.frames, self.spec.stride))
-        out = [self.net.head(features[index[i:i + batch_size]]) for i in range(0, len(index), batch_size)]
-        return torch.cat(out).numpy().astype(np.float32, copy=False)
 
     def streaming(self, num_envs: int) -> StreamingEmbedder:
         """A streaming embedder over `num_envs` environments: one base-CNN pass per new frame, per-frame
         features of the lookback window kept in a ring buffer (see `streaming.py`)."""
         return StreamingEmbedder(self.net, self.spec.frames, self.spec.stride, num_envs)
-
-    def save(self, path: Path) -> None:
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        torch.save({"model": self.net.state_dict(), "image_shape": list(self.image_shape)}, tmp)
-        os.replace(tmp, path)
-
-    def load(self, path: Path) -> None:
-        try:
-            state = torch.load(path, weights_only=True)
-            self.net.load_state_dict(state["model"])
-        except Exception as exc:  # noqa: BLE001 - truncated, foreign or mismatched file
-            raise BenchError(f"encoder checkpoint {path} cannot be loaded ({type(exc).__name__}); "
-                             f"delete it to train again") from None
-        if tuple(state["image_shape"]) != self.image_shape:
-            raise SpecError(f"encoder checkpoint {path} was trained on {tuple(state['image_shape'])} images, "
-                            f"not {self.image_shape}")
-        self.net.eval()

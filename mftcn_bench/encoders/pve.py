@@ -34,18 +34,9 @@ import torch
 
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.encoders.base import ClipBatch, EncoderInfo, FitBudget, ProgressFn
-from mftcn_bench.encoders.frame_cnn import (
-    CNNConfig,
-    FrameNet,
-    SingleViewTrainConfig,
-    check_image_shape,
-    load_network,
-    parse_table,
-    save_network,
-    to_images,
-    train_single_view,
-)
+from mftcn_bench.encoders.base import ClipBatch, FitBudget, ProgressFn
+from mftcn_bench.encoders.common import SpecEncoder, check_image_shape, map_batches, parse_table, to_images
+from mftcn_bench.encoders.frame_cnn import CNNConfig, FrameNet, SingleViewTrainConfig, train_single_view
 from mftcn_bench.encoders.training import EpisodePool
 from mftcn_bench.errors import SpecError
 from mftcn_bench.specs import EncoderSpec
@@ -136,8 +127,10 @@ def sample_triplets(pool: EpisodePool, rng: np.random.Generator, count: int,
     return np.stack(frames), np.stack(actions).astype(np.float32)
 
 
-class PVEEncoder:
+class PVEEncoder(SpecEncoder):
     """Position from one frame, velocity as its finite difference; embedding [p_t, v_t]."""
+
+    needs_fit = True
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         if spec.frames != 2 or spec.stride != 1:
@@ -146,21 +139,12 @@ class PVEEncoder:
         if spec.embedding_dim % 2:
             raise SpecError(f"encoder {spec.name!r}: embedding_dim = 2 * position_dim must be even, "
                             f"got {spec.embedding_dim}")
+        super().__init__(spec, image_shape, seed)
         self.model_config = parse_table(CNNConfig, spec.name, "model", spec.model)
         self.train_config = parse_table(PVETrainConfig, spec.name, "train", spec.train)
-        self.spec, self.image_shape, self.seed = spec, tuple(image_shape), seed
         self.position_dim = spec.embedding_dim // 2
         torch.manual_seed(seed)
         self.net = FrameNet(self.model_config, self.position_dim).eval()
-
-    @property
-    def info(self) -> EncoderInfo:
-        return EncoderInfo(self.spec.name, self.spec.frames, self.spec.stride, self.image_shape,
-                           self.spec.embedding_dim, sum(p.numel() for p in self.net.parameters()))
-
-    @property
-    def needs_fit(self) -> bool:
-        return True
 
     def batch_loss(self, pool: EpisodePool, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         """The weighted prior loss of one sampled batch, and each prior's value."""
@@ -191,13 +175,7 @@ class PVEEncoder:
                       batch_size: int = 256) -> np.ndarray:
         """[p_t, p_t - p_{t-1}] for every frame of one view [T, H, W, 3]: one CNN pass per frame."""
         images = to_images(frames)
-        positions = torch.cat([self.net(images[i:i + batch_size]) for i in range(0, len(images), batch_size)])
+        positions = map_batches(self.net, images, batch_size)
         previous = torch.from_numpy(clip_indices(np.arange(len(frames)), 2, 1)[:, 0])
         out = torch.cat([positions, positions - positions[previous]], dim=1)
         return out.numpy().astype(np.float32, copy=False)
-
-    def save(self, path: Path) -> None:
-        save_network(path, self.net, self.image_shape)
-
-    def load(self, path: Path) -> None:
-        load_network(path, self.net, self.image_shape)

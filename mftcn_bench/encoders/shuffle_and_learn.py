@@ -22,18 +22,9 @@ import torch
 from torch import nn
 
 from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.encoders.base import ClipBatch, EncoderInfo, FitBudget, ProgressFn
-from mftcn_bench.encoders.frame_cnn import (
-    CNNConfig,
-    FrameNet,
-    SingleViewTrainConfig,
-    check_image_shape,
-    load_network,
-    parse_table,
-    save_network,
-    to_images,
-    train_single_view,
-)
+from mftcn_bench.encoders.base import ClipBatch, FitBudget, ProgressFn
+from mftcn_bench.encoders.common import SpecEncoder, check_image_shape, map_batches, parse_table, to_images
+from mftcn_bench.encoders.frame_cnn import CNNConfig, FrameNet, SingleViewTrainConfig, train_single_view
 from mftcn_bench.encoders.training import EpisodePool
 from mftcn_bench.errors import DataError, SpecError
 from mftcn_bench.specs import EncoderSpec
@@ -115,29 +106,25 @@ class ShuffleNet(nn.Module):
         return self.classifier(features).squeeze(-1)
 
 
-class ShuffleAndLearnEncoder:
+class ShuffleAndLearnEncoder(SpecEncoder):
     """Temporal-order verification; the trunk's output on the clip's frame is the embedding."""
+
+    needs_fit = True
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         if spec.frames != 1:
             raise SpecError(f"encoder {spec.name!r}: Shuffle and Learn embeds one frame (frames = 1), "
                             f"got frames = {spec.frames}")
+        super().__init__(spec, image_shape, seed)
         self.model_config = parse_table(ShuffleModelConfig, spec.name, "model", spec.model)
         self.train_config = parse_table(ShuffleTrainConfig, spec.name, "train", spec.train)
-        self.spec, self.image_shape, self.seed = spec, tuple(image_shape), seed
         torch.manual_seed(seed)
         self.net = ShuffleNet(self.model_config, spec.embedding_dim).eval()
         self.loss_fn = nn.BCEWithLogitsLoss()
 
-    @property
-    def info(self) -> EncoderInfo:
-        trunk = self.net.trunk
-        return EncoderInfo(self.spec.name, self.spec.frames, self.spec.stride, self.image_shape,
-                           self.spec.embedding_dim, sum(p.numel() for p in trunk.parameters()))
-
-    @property
-    def needs_fit(self) -> bool:
-        return True
+    def counted_module(self) -> nn.Module:
+        """Only the trunk embeds; the order classifier is a training device."""
+        return self.net.trunk
 
     def batch_loss(self, pool: EpisodePool, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         """BCE of the order classifier on one balanced batch, and its accuracy."""
@@ -164,12 +151,4 @@ class ShuffleAndLearnEncoder:
     def embed_episode(self, frames: np.ndarray, state: np.ndarray | None = None,
                       batch_size: int = 256) -> np.ndarray:
         """The trunk's output for every frame of one view [T, H, W, 3]."""
-        images = to_images(frames)
-        out = [self.net.trunk(images[i:i + batch_size]) for i in range(0, len(images), batch_size)]
-        return torch.cat(out).numpy().astype(np.float32, copy=False)
-
-    def save(self, path: Path) -> None:
-        save_network(path, self.net, self.image_shape)
-
-    def load(self, path: Path) -> None:
-        load_network(path, self.net, self.image_shape)
+        return map_batches(self.net.trunk, to_images(frames), batch_size).numpy().astype(np.float32, copy=False)

@@ -16,8 +16,9 @@ Training, chosen by `[train] loss`:
   is L2-normalised at inference too. `batch_timesteps` is the number of triplets a batch;
   `alpha` and `reg_lambda` are used by n-pairs only.
 
-The encoder reuses mfTCN's embedding, checkpoint and streaming code (`MfTCNEncoder`): the network has
-the same `frame_features` / `head` split, with a head that reads the clip's single frame.
+The encoder reuses mfTCN's construction, embedding, checkpoint and streaming code (`MfTCNEncoder`, with
+its own `configure` / `build_net`): the network has the same `frame_features` / `head` split, with a head
+that reads the clip's single frame.
 """
 
 from __future__ import annotations
@@ -34,12 +35,12 @@ from torch import nn
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
+from mftcn_bench.encoders.common import check_image_shape, parse_table
 from mftcn_bench.encoders.mftcn import BaseCNN, MfTCNEncoder, MfTCNModelConfig
 from mftcn_bench.encoders.training import (
     ContrastiveTrainConfig,
     EpisodePool,
     run_training,
-    train_multiview,
 )
 from mftcn_bench.errors import DataError, SpecError
 from mftcn_bench.specs import EncoderSpec
@@ -257,27 +258,21 @@ def train_triplet(net: nn.Module, dataset: MultiViewDataset, config: TCNTrainCon
 class TCNEncoder(MfTCNEncoder):
     """The single-frame TCN: embedding, checkpoints and streaming as mfTCN, its own network and losses."""
 
-    def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
+    def configure(self, spec: EncoderSpec) -> None:
         if spec.frames != 1:
             raise SpecError(f"encoder {spec.name!r} is single-frame TCN: frames must be 1, got {spec.frames}")
-        try:
-            self.model_config = TCNModelConfig(**spec.model)
-        except TypeError as exc:
-            raise SpecError(f"encoder {spec.name!r}: bad [model] table ({exc})") from None
+        self.model_config = parse_table(TCNModelConfig, spec.name, "model", spec.model)
         self.tcn_train_config = TCNTrainConfig.from_table(spec.name, dict(spec.train))
         self.train_config = self.tcn_train_config.base
-        self.spec, self.image_shape, self.seed = spec, tuple(image_shape), seed
-        torch.manual_seed(seed)
+
+    def build_net(self) -> nn.Module:
         triplet = self.tcn_train_config.loss == "triplet"
-        self.net = TCNNet(self.model_config, spec.embedding_dim, l2_normalize=triplet).eval()
+        return TCNNet(self.model_config, self.spec.embedding_dim, l2_normalize=triplet)
 
     def fit(self, dataset: MultiViewDataset, budget: FitBudget, progress: ProgressFn,
             workdir: Path) -> dict[str, float]:
-        if dataset.image_shape != self.image_shape:
-            raise SpecError(f"encoder built for {self.image_shape} images cannot train on "
-                            f"{dataset.image_shape} frames")
-        if self.tcn_train_config.loss == "triplet":
-            return train_triplet(self.net, dataset, self.tcn_train_config, budget, progress, workdir,
-                                 frames=self.spec.frames, stride=self.spec.stride, seed=self.seed)
-        return train_multiview(self.net, dataset, self.train_config, budget, progress, workdir,
-                               frames=self.spec.frames, stride=self.spec.stride, seed=self.seed)
+        if self.tcn_train_config.loss != "triplet":
+            return super().fit(dataset, budget, progress, workdir)
+        check_image_shape(self.image_shape, dataset)
+        return train_triplet(self.net, dataset, self.tcn_train_config, budget, progress, workdir,
+                             frames=self.spec.frames, stride=self.spec.stride, seed=self.seed)

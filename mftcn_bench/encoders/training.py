@@ -8,7 +8,6 @@ written atomically every `checkpoint_every` steps; `fit` resumes from the last o
 from __future__ import annotations
 
 import json
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ import torch
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import Episode, MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
+from mftcn_bench.encoders.common import parse_table, save_payload
 from mftcn_bench.encoders.losses import multiview_npairs_loss
 from mftcn_bench.encoders.sampling import plan_batch
 from mftcn_bench.errors import SpecError, TrainingError
@@ -44,10 +44,7 @@ class ContrastiveTrainConfig:
 
     @classmethod
     def from_table(cls, name: str, table: dict) -> ContrastiveTrainConfig:
-        try:
-            return cls(**table)
-        except TypeError as exc:
-            raise SpecError(f"encoder {name!r}: bad [train] table ({exc})") from None
+        return parse_table(cls, name, "train", table)
 
 
 class ClipNetwork(Protocol):
@@ -87,12 +84,10 @@ def gather_clips(pool: EpisodePool, episodes: np.ndarray, times: np.ndarray, fra
 
 def _save_checkpoint(path: Path, net: torch.nn.Module, opt: torch.optim.Optimizer, step: int,
                      rng: np.random.Generator, pool: EpisodePool) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "step": step,
-                "pool": sorted(pool.episodes),
-                "numpy_rng": json.dumps(rng.bit_generator.state),
-                "torch_rng": torch.get_rng_state()}, tmp)
-    os.replace(tmp, path)
+    save_payload(path, {"model": net.state_dict(), "optimizer": opt.state_dict(), "step": step,
+                        "pool": sorted(pool.episodes),
+                        "numpy_rng": json.dumps(rng.bit_generator.state),
+                        "torch_rng": torch.get_rng_state()})
 
 
 class LoopConfig(Protocol):
