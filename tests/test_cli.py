@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from mftcn_bench.store import ResultStore
@@ -97,3 +98,22 @@ def test_read_only_home_is_refused(tmp_path):
         assert proc.returncode == 2 and "not writable" in proc.stderr
     finally:
         home.chmod(0o700)
+
+
+def test_every_registered_encoder_runs_the_smoke_probe(smoke_home, monkeypatch):
+    """Each encoder in the registry, in-process, on the already collected smoke dataset."""
+    from mftcn_bench import registry
+    from mftcn_bench.errors import BenchError
+    from mftcn_bench.home import BenchHome
+    from mftcn_bench.runner import RunRequest, run
+
+    home = BenchHome.resolve(smoke_home)
+    for name in registry.entries("encoders"):
+        if name == "inception":  # needs ImageNet weights on disk: the run stops with where to put them
+            with pytest.raises(BenchError, match="encoder.model.weights"):
+                run(RunRequest(name, "cartpole-probe", "smoke"), home, show_progress=False)
+            continue
+        outcome = run(RunRequest(name, "cartpole-probe", "smoke"), home, show_progress=False)
+        assert np.isfinite(outcome.record.metrics["average"]), name
+        assert outcome.record.config["encoder_info"]["name"] == name
+    assert len(list((smoke_home / "datasets").glob("cartpole-random-*"))) == 1
