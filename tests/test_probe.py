@@ -38,7 +38,7 @@ def probe_config():
     dataset = synthetic_config(train_episodes=6, episode_length=200, cameras=["fixed", "lookatcart"])
     return {"name": "cartpole-probe", "dataset": dataset,
             "probe": {"camera": "fixed", "hidden": [32, 32, 32], "lr": 0.003, "epochs": 200, "batch_size": 64,
-                      "tol": 1e-6}}
+                      "tol": 1e-6, "early_stopping": True, "validation_fraction": 0.1, "patience": 10}}
 
 
 def test_probe_reads_state_from_a_perfect_encoder_and_not_from_noise(tmp_path):
