@@ -111,7 +111,9 @@ def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchH
         shutil.rmtree(workdir)
     if model_path.exists():
         encoder.load(model_path)
-        return encoder, {**stats, "reused": True, "checkpoint": str(model_path)}
+        fit_file = workdir / "fit.json"
+        trained = json.loads(fit_file.read_text()) if fit_file.exists() else {}
+        return encoder, {**stats, **trained, "reused": True, "checkpoint": str(model_path)}
     workdir.mkdir(parents=True, exist_ok=True)
     train = dict(spec.train)
     budget = FitBudget(steps=int(train.get("steps", 0)), max_seconds=train.get("max_seconds") or None)
