@@ -14,17 +14,18 @@ import shutil
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import mftcn_bench
 from mftcn_bench import registry
-from mftcn_bench.data.chunks import atomic_write_bytes
 from mftcn_bench.data.dataset import MultiViewDataset, ensure_dataset
 from mftcn_bench.encoders.base import Encoder, FitBudget
 from mftcn_bench.errors import BenchError
+from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.home import BenchHome
 from mftcn_bench.provenance import content_hash, versions
-from mftcn_bench.specs import encoder_spec_from_config, resolve_config
+from mftcn_bench.specs import EncoderSpec, encoder_spec_from_config, resolve_config
 from mftcn_bench.store import ResultStore, RunRecord
 from mftcn_bench.tasks.base import Task
 
@@ -100,20 +101,26 @@ def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchH
     if not isinstance(encoder, Encoder):
         raise BenchError(f"encoder {spec.name!r} ({prepared.encoder_entry.entry_point.value}) does not "
                          f"implement the Encoder protocol (info, needs_fit, fit, embed, save, load)")
-    stats: dict[str, Any] = {"fitted": False, "reused": False}
     if not encoder.needs_fit:
-        return encoder, stats
+        return encoder, {"fitted": False, "reused": False}
     key = content_hash({"encoder": config["encoder"], "dataset": dataset.fingerprint, "seed": seed,
                         "version": mftcn_bench.__version__})
     workdir = home.encoders / f"{spec.name}-{key}"
+    with exclusive_lock(home.encoders / f".{workdir.name}.lock"):  # concurrent runs fit it once
+        return encoder, _fit_or_load(encoder, spec, dataset, workdir, prepared.request.force, show_progress)
+
+
+def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset, workdir: Path, force: bool,
+                 show_progress: bool) -> dict[str, Any]:
+    """Load the checkpoint in `workdir`, or fit (resuming a killed fit) and save it there."""
     model_path = workdir / "model.pt"
-    if prepared.request.force and workdir.exists():
+    if force and workdir.exists():
         shutil.rmtree(workdir)
     if model_path.exists():
         encoder.load(model_path)
         fit_file = workdir / "fit.json"
         trained = json.loads(fit_file.read_text()) if fit_file.exists() else {}
-        return encoder, {**stats, **trained, "reused": True, "checkpoint": str(model_path)}
+        return {"fitted": False, **trained, "reused": True, "checkpoint": str(model_path)}
     workdir.mkdir(parents=True, exist_ok=True)
     train = dict(spec.train)
     budget = FitBudget(steps=int(train.get("steps", 0)), max_seconds=train.get("max_seconds") or None)
@@ -125,7 +132,7 @@ def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchH
     encoder.save(model_path)
     (workdir / "train_checkpoint.pt").unlink(missing_ok=True)
     atomic_write_bytes(workdir / "fit.json", json.dumps(fit_stats, indent=1).encode())
-    return encoder, {**stats, "fitted": True, "checkpoint": str(model_path), **fit_stats}
+    return {"fitted": True, "reused": False, "checkpoint": str(model_path), **fit_stats}
 
 
 def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> RunOutcome:

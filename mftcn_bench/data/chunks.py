@@ -8,7 +8,6 @@ Readers use plain `numpy.load` (pickles refused).
 from __future__ import annotations
 
 import io
-import os
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -16,19 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from mftcn_bench.errors import DataError
+from mftcn_bench.fileio import atomic_write_bytes
 from mftcn_bench.provenance import file_sha256
 
 FIXED_TIME = (1980, 1, 1, 0, 0, 0)
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write to a temporary file beside `path`, flush to disk, then rename over it."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
 
 
 def write_chunk(path: Path, arrays: Mapping[str, np.ndarray], compresslevel: int = 6) -> str:

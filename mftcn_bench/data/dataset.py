@@ -11,19 +11,18 @@ reuse the dataset. Episodes are loaded one at a time (with a small cache), never
 
 from __future__ import annotations
 
-import fcntl
 import json
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mftcn_bench.data.chunks import atomic_write_bytes, read_chunk, write_chunk
+from mftcn_bench.data.chunks import read_chunk, write_chunk
 from mftcn_bench.errors import DataError
+from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.provenance import content_hash, versions
 
 FORMAT_VERSION = 1
@@ -115,18 +114,6 @@ def dataset_id(config: Mapping[str, Any]) -> str:
     return content_hash({"config": dict(config), "format": FORMAT_VERSION})
 
 
-@contextmanager
-def _locked(path: Path) -> Iterator[None]:
-    """An exclusive lock so that concurrent runs collect a dataset once."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
-
-
 def _episode_plan(config: Mapping[str, Any]) -> list[tuple[int, str]]:
     train, test = int(config["train_episodes"]), int(config["test_episodes"])
     if train < 1 or test < 1:
@@ -142,7 +129,7 @@ def ensure_dataset(
     root = datasets_dir / f"{config['name']}-{ident}"
     if (root / "manifest.json").exists():
         return MultiViewDataset(root)
-    with _locked(datasets_dir / f".{root.name}.lock"):
+    with exclusive_lock(datasets_dir / f".{root.name}.lock"):
         if (root / "manifest.json").exists():  # another process finished it while we waited
             return MultiViewDataset(root)
         root.mkdir(parents=True, exist_ok=True)
