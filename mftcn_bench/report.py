@@ -7,7 +7,10 @@ from collections import defaultdict
 import numpy as np
 import pandas as pd
 
-from mftcn_bench.store import ResultStore
+from mftcn_bench import registry
+from mftcn_bench.errors import BenchError
+from mftcn_bench.specs import resolve_config
+from mftcn_bench.store import ResultStore, RunRecord
 from mftcn_bench.tasks.probe import TARGETS
 
 # Table "Results on regressing Cartpole Positions and Velocities from mfTCN Embeddings" of the paper:
@@ -26,12 +29,26 @@ PAPER_PROBE: dict[tuple[int, int], tuple[float, ...]] = {
 PROBE_COLUMNS = ("average", "position", "motion") + tuple(f"mse_{k}" for k in TARGETS)
 
 
+def matches_current_specs(record: RunRecord) -> bool:
+    """Whether a stored run used today's spec files for its encoder, task and preset, with at most the
+    embedding size overridden (the paper's tables vary it). Runs of older specs or other overrides are
+    not mixed into the tables."""
+    try:
+        encoder, task = registry.get("encoders", record.encoder), registry.get("tasks", record.task)
+        _, config = resolve_config(encoder.spec, task.spec, record.preset,
+                                   [("encoder.embedding_dim", record.config["encoder"]["embedding_dim"])])
+    except BenchError:
+        return False
+    return config["encoder"] == record.config["encoder"] and config["task"] == record.config["task"]
+
+
 def probe_table(store: ResultStore, preset: str | None = None) -> pd.DataFrame:
-    """Rows (preset, embedding size, lookback) of mfTCN probe results, mean over seeds, with the paper's
-    figure beside each of ours ("paper" columns; empty where the paper has no such row)."""
+    """Rows (preset, embedding size, lookback) of mfTCN probe results of the current specs, mean over
+    seeds, with the paper's figure beside each of ours ("paper" columns; empty where the paper has no
+    such row)."""
     groups: dict[tuple[str, int, int], list[dict]] = defaultdict(list)
     for record in store.query(task="cartpole-probe", preset=preset):
-        if record.config["encoder"]["family"] != "mftcn":
+        if record.config["encoder"]["family"] != "mftcn" or not matches_current_specs(record):
             continue
         info = record.config["encoder_info"]
         lookback = (info["frames"] - 1) * info["stride"] + 1
