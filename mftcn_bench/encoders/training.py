@@ -47,12 +47,6 @@ class ContrastiveTrainConfig:
         return parse_table(cls, name, "train", table)
 
 
-class ClipNetwork(Protocol):
-    """A torch module embedding clips [B, n, 3, H, W] (uint8) to [B, D]."""
-
-    def __call__(self, clips: torch.Tensor) -> torch.Tensor: ...
-
-
 class EpisodePool:
     """A few decoded train episodes; every `refresh_steps` one of them is swapped for another."""
 
