@@ -162,6 +162,7 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
         timings={"dataset_s": after_data - began, "fit_s": after_fit - after_data,
                  "evaluate_s": done - after_fit, "total_s": done - began},
         artifacts=str(home.runs / run_id),
+        curves=result.curves,
     )
     run_dir = home.runs / run_id
     run_dir.mkdir(parents=True, exist_ok=True)

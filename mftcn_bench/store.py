@@ -10,7 +10,7 @@ import json
 import sqlite3
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -28,7 +28,8 @@ CREATE TABLE IF NOT EXISTS runs (
     metrics     TEXT NOT NULL,
     timings     TEXT NOT NULL,
     artifacts   TEXT,
-    created_at  TEXT NOT NULL
+    created_at  TEXT NOT NULL,
+    curves      TEXT NOT NULL DEFAULT '{}'
 );
 CREATE INDEX IF NOT EXISTS runs_by_task ON runs (task, encoder, preset);
 """
@@ -50,6 +51,7 @@ class RunRecord:
     timings: dict[str, float]
     artifacts: str | None = None
     created_at: str = ""
+    curves: dict[str, dict[str, list[float]]] = field(default_factory=dict)
 
 
 class ResultStore:
@@ -62,6 +64,9 @@ class ResultStore:
         with self._connect() as conn:
             conn.execute("PRAGMA journal_mode=WAL")
             conn.executescript(SCHEMA)
+            columns = {row[1] for row in conn.execute("PRAGMA table_info(runs)")}
+            if "curves" not in columns:  # a store written before curves were kept
+                conn.execute("ALTER TABLE runs ADD COLUMN curves TEXT NOT NULL DEFAULT '{}'")
 
     @contextmanager
     def _connect(self) -> Iterator[sqlite3.Connection]:
@@ -78,12 +83,13 @@ class ResultStore:
         created = record.created_at or datetime.now(UTC).isoformat(timespec="seconds")
         with self._connect() as conn:
             conn.execute(
-                "INSERT OR REPLACE INTO runs VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+                "INSERT OR REPLACE INTO runs VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)",
                 (
                     record.run_id, record.encoder, record.task, record.preset, record.seed,
                     record.dataset_id, json.dumps(record.config, sort_keys=True),
                     json.dumps(record.versions, sort_keys=True), json.dumps(record.metrics, sort_keys=True),
                     json.dumps(record.timings, sort_keys=True), record.artifacts, created,
+                    json.dumps(record.curves, sort_keys=True),
                 ),
             )
 
@@ -112,6 +118,7 @@ class ResultStore:
 
 def _record(row: tuple) -> RunRecord:
     (run_id, encoder, task, preset, seed, dataset_id, config, versions, metrics, timings, artifacts,
-     created_at) = row
+     created_at, curves) = row
     return RunRecord(run_id, encoder, task, preset, int(seed), dataset_id, json.loads(config),
-                     json.loads(versions), json.loads(metrics), json.loads(timings), artifacts, created_at)
+                     json.loads(versions), json.loads(metrics), json.loads(timings), artifacts, created_at,
+                     json.loads(curves))

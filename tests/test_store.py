@@ -38,3 +38,21 @@ def test_four_concurrent_writers_lose_nothing(tmp_path):
         assert p.exitcode == 0
     store = ResultStore(path)
     assert len(store.query()) == 100 and store.integrity_ok()
+
+
+def test_curves_round_trip_and_old_store_gains_the_column(tmp_path):
+    import sqlite3
+
+    path = tmp_path / "old.sqlite"
+    with sqlite3.connect(path) as conn:  # the schema before curves were stored
+        conn.execute("CREATE TABLE runs (run_id TEXT PRIMARY KEY, encoder TEXT NOT NULL, task TEXT NOT NULL, "
+                     "preset TEXT NOT NULL, seed INTEGER NOT NULL, dataset_id TEXT, config TEXT NOT NULL, "
+                     "versions TEXT NOT NULL, metrics TEXT NOT NULL, timings TEXT NOT NULL, artifacts TEXT, "
+                     "created_at TEXT NOT NULL)")
+        conn.execute("INSERT INTO runs VALUES ('old','e','t','quick',0,'d','{}','{}','{}','{}',NULL,'2026')")
+    store = ResultStore(path)
+    assert store.get("old").curves == {}
+    curves = {"train": {"frames": [0.0, 10.0], "return": [1.5, 2.5]}}
+    rec = record("new")
+    store.put(RunRecord(**{**rec.__dict__, "curves": curves}))
+    assert store.get("new").curves == curves and store.integrity_ok()

@@ -9,13 +9,19 @@ from typing import Any, Protocol
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder
 
+# Learning curves: name -> columns of equal length, e.g.
+# {"train": {"frames": [...], "wall_s": [...], "return": [...]}}.
+Curves = dict[str, dict[str, list[float]]]
+
 
 @dataclass(frozen=True)
 class TaskResult:
-    """Metrics of one run (floats, or None for "not applicable") and notes shown with the table."""
+    """Metrics of one run (floats, or None for "not applicable"), notes shown with the table, and the
+    learning curves of tasks that train something (stored with the result)."""
 
     metrics: dict[str, float | None]
     notes: list[str] = field(default_factory=list)
+    curves: Curves = field(default_factory=dict)
 
 
 class Task(Protocol):
