@@ -1,4 +1,6 @@
-"""The `mftcn-bench` command line: run, list, data, report.
+"""The `mftcn-bench` command line: run, list, data, sweep, report, leaderboard, results, plot.
+
+The results commands (sweep onwards) live in `cli_results`.
 
 Bad input ends with one line on stderr naming what was wrong and what is allowed, and exit code 2.
 """
@@ -6,9 +8,11 @@ Bad input ends with one line on stderr naming what was wrong and what is allowed
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
 import warnings
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any, NoReturn
 
 from tabulate import tabulate
@@ -81,11 +85,19 @@ def build_parser() -> argparse.ArgumentParser:
     collect.add_argument("--preset")
     collect.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     _common(collect)
+    show = data_commands.add_parser("show", help="contact sheet (PNG) and video (mp4) of one episode, with labels")
+    show.add_argument("task", help="task whose dataset to show, e.g. pouring")
+    show.add_argument("--preset")
+    show.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    show.add_argument("--split", default="train", choices=["train", "val", "test"])
+    show.add_argument("--episode", type=int, default=0, help="position of the episode in its split (default 0)")
+    show.add_argument("--columns", type=int, default=8, help="frames per view in the contact sheet")
+    show.add_argument("--out", default=".", help="folder for the PNG and the mp4 (default: here)")
+    _common(show)
 
-    report = commands.add_parser("report", help="print a paper table from stored results")
-    report.add_argument("table", choices=["probe"])
-    report.add_argument("--preset", help="only results of this preset")
-    _common(report)
+    from mftcn_bench.cli_results import add_commands
+
+    add_commands(commands, _common, _Parser)  # sweep, report, leaderboard, results, plot
     return parser
 
 
@@ -116,35 +128,23 @@ def cmd_data(args: argparse.Namespace) -> None:
     overrides = tuple(parse_override(o) for o in args.overrides)
     prepared = prepare(RunRequest(DEFAULT_ENCODER, args.task, args.preset, 0, overrides))
     dataset = prepare_dataset(prepared, BenchHome.resolve(args.home), show_progress=not args.no_progress)
-    frames = sum(dataset.episode_length(i) for s in ("train", "test") for i in dataset.episodes(s))
+    if args.data_command == "show":
+        from mftcn_bench.data.show import show_episode
+
+        for path in show_episode(dataset, args.split, args.episode, Path(args.out), args.columns,
+                                 getattr(prepared.task, "label_names", ()),
+                                 getattr(prepared.task, "label_formats", None)):
+            print(f"wrote {path}")
+        return
+    frames = sum(dataset.episode_length(i) for s in ("train", "val", "test") for i in dataset.episodes(s))
     train, test = len(dataset.episodes("train")), len(dataset.episodes("test"))
-    print(f"dataset {dataset.config['name']} ({dataset.dataset_id}): {train} train + {test} test episodes, "
+    val = f"{len(dataset.episodes('val'))} val + " if dataset.episodes("val") else ""
+    print(f"dataset {dataset.config['name']} ({dataset.dataset_id}): {train} train + {val}{test} test episodes, "
           f"{frames} frames x {len(dataset.cameras)} views "
           f"at {dataset.image_shape[1]}x{dataset.image_shape[0]}, in {dataset.root}")
 
 
-def cmd_report(args: argparse.Namespace) -> None:
-    from mftcn_bench.report import PROBE_COLUMNS, probe_table
-    from mftcn_bench.store import ResultStore
-
-    table = probe_table(ResultStore(BenchHome.resolve(args.home).database), args.preset)
-    if table.empty:
-        print("no mfTCN cartpole-probe results stored yet; run e.g. "
-              "`mftcn-bench run --encoder mftcn4 --task cartpole-probe`")
-        return
-    rows = []
-    for row in table.to_dict("records"):
-        out = {k: row[k] for k in ("preset", "embedding", "lookback", "seeds")}
-        for column in PROBE_COLUMNS:
-            paper = row[f"{column} (paper)"]
-            out[column.removeprefix("mse_")] = _fmt(row[column]) + (f" ({paper:.4f})" if paper else "")
-        rows.append(out)
-    print("Cartpole state regression MSE: ours (paper), mean over seeds of runs made with the current spec files "
-          "(embedding size by override). Paper figures are at paper scale (160k/20k frames).")
-    _print_table(rows)
-
-
-COMMANDS = {"run": cmd_run, "list": cmd_list, "data": cmd_data, "report": cmd_report}
+COMMANDS = {"run": cmd_run, "list": cmd_list, "data": cmd_data}  # the others name theirs (args.handler)
 
 
 _show_warning = warnings.showwarning
@@ -160,14 +160,26 @@ def _warn_one_line(message, category, filename, lineno, file=None, line=None) ->
         _show_warning(message, category, filename, lineno, file, line)
 
 
+def _unwritable(exc: OSError) -> bool:
+    """A write refused by the file system (permissions, read-only, full disk): the user's to fix."""
+    return isinstance(exc, PermissionError) or exc.errno in (errno.EROFS, errno.ENOSPC, errno.EDQUOT)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     warnings.showwarning = _warn_one_line
     try:
         args = build_parser().parse_args(argv)
-        COMMANDS[args.command](args)
+        (COMMANDS.get(args.command) or args.handler)(args)
     except BenchError as exc:
         print(f"mftcn-bench: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except OSError as exc:
+        if not _unwritable(exc):
+            raise
+        print(f"mftcn-bench: error: cannot write {exc.filename or 'a file'} ({exc.strerror}); the results folder "
+              f"must be writable and have free space: fix it or choose another with --home or ${ENV_VAR}",
+              file=sys.stderr)
+        return BenchError.exit_code
     except KeyboardInterrupt:
         print("mftcn-bench: interrupted; finished work is kept and a rerun continues from it",
               file=sys.stderr)

@@ -14,7 +14,7 @@ DEFAULT_HOME = Path("~/.mftcn-bench")
 
 @dataclass(frozen=True)
 class BenchHome:
-    """The folder layout under one home: `datasets/`, `encoders/`, `runs/`, `results.sqlite`."""
+    """The folder layout under one home: `datasets/`, `encoders/`, `experts/`, `runs/`, `results.sqlite`."""
 
     root: Path
 
@@ -39,6 +39,11 @@ class BenchHome:
     @property
     def encoders(self) -> Path:
         return self.root / "encoders"
+
+    @property
+    def experts(self) -> Path:
+        """Expert policies that demonstration datasets are recorded from."""
+        return self.root / "experts"
 
     @property
     def runs(self) -> Path:

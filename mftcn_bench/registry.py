@@ -68,22 +68,40 @@ def _read_spec(kind: Kind, ep: EntryPoint) -> EncoderSpec | TaskSpec:
     return TaskSpec.from_dict(ep.name, data)
 
 
-def entries(kind: Kind) -> dict[str, Entry]:
-    """All usable registered variants of `kind`, by name; unusable ones are reported as warnings."""
+def _scan(kind: Kind) -> tuple[dict[str, Entry], dict[str, str]]:
+    """(usable variants by name, unusable ones by name with the reason)."""
     found: dict[str, Entry] = {}
+    broken: dict[str, str] = {}
     for ep in entry_points(group=GROUPS[kind]):
-        if ep.name in found:
+        if ep.name in found or ep.name in broken:
             continue  # the same distribution seen twice on sys.path
         try:
             found[ep.name] = Entry(kind, ep, _read_spec(kind, ep))
         except BenchError as exc:
-            warnings.warn(f"skipping {kind[:-1]} {ep.name!r}: {exc}", PluginWarning, stacklevel=2)
-    return dict(sorted(found.items()))
+            broken[ep.name] = str(exc)
+    return dict(sorted(found.items())), broken
+
+
+def _warn(kind: Kind, broken: dict[str, str]) -> None:
+    for name, reason in broken.items():
+        warnings.warn(f"skipping {kind[:-1]} {name!r}: {reason}", PluginWarning, stacklevel=3)
+
+
+def entries(kind: Kind) -> dict[str, Entry]:
+    """All usable registered variants of `kind`, by name; unusable ones are reported as warnings."""
+    found, broken = _scan(kind)
+    _warn(kind, broken)
+    return found
 
 
 def get(kind: Kind, name: str) -> Entry:
-    """The registered variant `name`, or a one-line error with suggestions."""
-    found = entries(kind)
+    """The registered variant `name`, or a one-line error with suggestions. Asking for a registered
+    variant that cannot be used is that one-line error (other unusable ones are warnings)."""
+    found, broken = _scan(kind)
+    reason = broken.pop(name, None)
+    _warn(kind, broken)
+    if reason is not None:
+        raise SpecError(f"{kind[:-1]} {name!r} cannot be used: {reason}")
     if name not in found:
         raise SpecError(did_you_mean(kind[:-1], name, list(found)))
     return found[name]

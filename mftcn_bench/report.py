@@ -1,65 +1,149 @@
-"""Paper tables from stored results: our figures beside the paper's."""
+"""The paper's tables from stored results: our figures (mean ± sample std over seeds, number of seeds)
+beside the paper's, as markdown or LaTeX.
+
+What each table holds is data in `paper_tables`; this module fills its rows from the store. A paper row
+with no stored run shows "-" for ours. Stored runs of a table's tasks that no paper row covers (another
+encoder, another embedding size) follow as extra rows marked "(not in paper)".
+"""
 
 from __future__ import annotations
 
+import re
 from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Literal
 
-import numpy as np
-import pandas as pd
+from tabulate import tabulate
 
-from mftcn_bench import registry
-from mftcn_bench.errors import BenchError
-from mftcn_bench.specs import resolve_config
+from mftcn_bench.paper_tables import TABLES, PaperRow, PaperTable
+from mftcn_bench.selection import (
+    Accept,
+    config_value,
+    counted_runs,
+    default_embedding_dim,
+    matches_current_specs,
+    variant_key,
+    variant_label,
+)
+from mftcn_bench.stats import STD_KIND, SeedStats, format_mean_std, seed_stats
 from mftcn_bench.store import ResultStore, RunRecord
-from mftcn_bench.tasks.probe import TARGETS
 
-# Table "Results on regressing Cartpole Positions and Velocities from mfTCN Embeddings" of the paper:
-# (embedding size, lookback) -> Average, Position, Motion, then the five attributes in TARGETS order.
-PAPER_PROBE: dict[tuple[int, int], tuple[float, ...]] = {
-    (8, 1): (0.1312, 0.0201, 0.2979, 0.0238, 0.0085, 0.0279, 0.4964, 0.0993),
-    (8, 2): (0.0435, 0.0017, 0.1062, 0.0011, 0.0025, 0.0016, 0.1587, 0.0537),
-    (8, 4): (0.0207, 0.0014, 0.0497, 0.0008, 0.0020, 0.0014, 0.0788, 0.0207),
-    (32, 1): (0.0911, 0.0052, 0.2201, 0.0045, 0.0037, 0.0072, 0.3716, 0.0686),
-    (32, 2): (0.0401, 0.0019, 0.0974, 0.0014, 0.0027, 0.0015, 0.1456, 0.0492),
-    (32, 4): (0.0198, 0.0013, 0.0476, 0.0008, 0.0020, 0.0013, 0.0748, 0.0203),
-    (128, 1): (0.0636, 0.0040, 0.1528, 0.0030, 0.0035, 0.0056, 0.2396, 0.0661),
-    (128, 2): (0.0419, 0.0018, 0.1020, 0.0011, 0.0027, 0.0015, 0.1489, 0.0552),
-    (128, 4): (0.0211, 0.0014, 0.0505, 0.0007, 0.0022, 0.0014, 0.0783, 0.0227),
-}
-PROBE_COLUMNS = ("average", "position", "motion") + tuple(f"mse_{k}" for k in TARGETS)
+__all__ = ["TABLES", "ReportRow", "matches_current_specs", "render", "report", "table_rows"]
+
+Format = Literal["markdown", "latex"]
+NOT_IN_PAPER = "(not in paper)"
 
 
-def matches_current_specs(record: RunRecord) -> bool:
-    """Whether a stored run used today's spec files for its encoder, task and preset, with at most the
-    embedding size overridden (the paper's tables vary it). Runs of older specs or other overrides are
-    not mixed into the tables."""
-    try:
-        encoder, task = registry.get("encoders", record.encoder), registry.get("tasks", record.task)
-        _, config = resolve_config(encoder.spec, task.spec, record.preset,
-                                   [("encoder.embedding_dim", record.config["encoder"]["embedding_dim"])])
-    except BenchError:
+@dataclass(frozen=True)
+class ReportRow:
+    """One printed row: label cells, our encoder/task/preset, the seed statistics of each metric column,
+    and the paper's figures (None: a row the paper does not have)."""
+
+    labels: tuple[str, ...]
+    encoder: str
+    task: str
+    preset: str | None
+    seeds: int
+    stats: tuple[SeedStats | None, ...]
+    paper: tuple[float | None, ...] | None
+
+
+def _row_matches(row: PaperRow, record: RunRecord) -> bool:
+    if record.encoder != row.encoder or record.task != row.task:
         return False
-    return config["encoder"] == record.config["encoder"] and config["task"] == record.config["task"]
+    where = dict(row.where)
+    default_dim = default_embedding_dim(row.encoder)
+    if "encoder.embedding_dim" not in where and default_dim is not None:
+        where["encoder.embedding_dim"] = default_dim  # an overridden size is another row
+    return all(config_value(record, key) == value for key, value in where.items())
 
 
-def probe_table(store: ResultStore, preset: str | None = None) -> pd.DataFrame:
-    """Rows (preset, embedding size, lookback) of mfTCN probe results of the current specs, mean over
-    seeds, with the paper's figure beside each of ours ("paper" columns; empty where the paper has no
-    such row)."""
-    groups: dict[tuple[str, int, int], list[dict]] = defaultdict(list)
-    for record in store.query(task="cartpole-probe", preset=preset):
-        if record.config["encoder"]["family"] != "mftcn" or not matches_current_specs(record):
-            continue
-        info = record.config["encoder_info"]
-        lookback = (info["frames"] - 1) * info["stride"] + 1
-        groups[(record.preset, info["embedding_dim"], lookback)].append(record.metrics)
-    rows = []
-    for (preset_name, dim, lookback), runs in sorted(groups.items()):
-        row: dict[str, object] = {"preset": preset_name, "embedding": dim, "lookback": lookback,
-                                  "seeds": len(runs)}
-        paper = PAPER_PROBE.get((dim, lookback))
-        for i, column in enumerate(PROBE_COLUMNS):
-            row[column] = float(np.mean([m[column] for m in runs]))
-            row[f"{column} (paper)"] = paper[i] if paper else None
-        rows.append(row)
-    return pd.DataFrame(rows)
+def _stats(table: PaperTable, runs: Sequence[RunRecord]) -> tuple[SeedStats | None, ...]:
+    return tuple(seed_stats(r.metrics.get(c.metric) for r in runs) for c in table.columns)
+
+
+def _by_preset(runs: Iterable[RunRecord]) -> dict[str, list[RunRecord]]:
+    groups: dict[str, list[RunRecord]] = defaultdict(list)
+    for record in runs:
+        groups[record.preset].append(record)
+    return dict(sorted(groups.items()))
+
+
+def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | None = None,
+               accept: Accept = matches_current_specs) -> list[ReportRow]:
+    """The table's rows from `records`: each paper row once per preset that has runs for it (or once with
+    "-" when none has), then the runs no paper row covers."""
+    runs = [r for r in counted_runs(records, accept)
+            if r.task in table.tasks and (preset is None or r.preset == preset)]
+    used: set[str] = set()
+    rows: list[ReportRow] = []
+    for paper_row in table.rows:
+        matched = [r for r in runs if _row_matches(paper_row, r)]
+        used.update(r.run_id for r in matched)
+        groups = _by_preset(matched)
+        if not groups:
+            rows.append(ReportRow(paper_row.labels, paper_row.encoder, paper_row.task, preset, 0,
+                                  (None,) * len(table.columns), paper_row.paper))
+        for preset_name, group in groups.items():
+            rows.append(ReportRow(paper_row.labels, paper_row.encoder, paper_row.task, preset_name, len(group),
+                                  _stats(table, group), paper_row.paper))
+    extra: dict[tuple, list[RunRecord]] = defaultdict(list)
+    for record in runs:
+        if record.run_id not in used:
+            extra[variant_key(record)].append(record)
+    blank = ("",) * (len(table.label_headers) - 1)
+    for group in extra.values():
+        first = group[0]
+        rows.append(ReportRow((NOT_IN_PAPER, *blank), variant_label(first), first.task, first.preset, len(group),
+                              _stats(table, group), None))
+    return rows
+
+
+_LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$",
+                  "^": r"\^{}", "~": r"\~{}", "{": r"\{", "}": r"\}"}
+
+
+def _latex_escape(text: str) -> str:
+    return re.sub("[" + re.escape("".join(_LATEX_SPECIAL)) + "]", lambda m: _LATEX_SPECIAL[m.group()], text)
+
+
+def _cell(stats: SeedStats | None, paper: float | None, has_paper: bool, decimals: int, fmt: Format) -> str:
+    ours = format_mean_std(stats, decimals, pm="$\\pm$" if fmt == "latex" else "±")
+    if not has_paper:
+        return ours
+    return f"{ours} ({'-' if paper is None else f'{paper:.{decimals}f}'})"
+
+
+def render(table: PaperTable, rows: Sequence[ReportRow], fmt: Format = "markdown") -> str:
+    """The table as text: a title, what the figures are, and the rows."""
+    multi_task = len(table.tasks) > 1
+    headers = [*table.label_headers, "encoder", *(["task"] if multi_task else []), "preset", "seeds",
+               *(c.label for c in table.columns)]
+    body = []
+    for row in rows:
+        cells = [_cell(s, row.paper[i] if row.paper else None, row.paper is not None, table.decimals, fmt)
+                 for i, s in enumerate(row.stats)]
+        labels = [*row.labels, row.encoder, *([row.task] if multi_task else []), row.preset or "-",
+                  str(row.seeds)]
+        if fmt == "latex":
+            labels = [_latex_escape(text) for text in labels]
+        body.append([*labels, *cells])
+    explain = (f"Ours: mean ± {STD_KIND} (seeds = n); the paper's figure in brackets, \"-\" where it has "
+               f"none. Only runs of the current spec files count (embedding size may be overridden). "
+               f"{table.note}").strip()
+    if fmt == "latex":
+        headers = [_latex_escape(h) for h in headers]
+        text = tabulate(body, headers=headers, tablefmt="latex_raw", disable_numparse=True)
+        caption = _latex_escape(f"{table.title}. {explain}").replace("±", "$\\pm$")
+        return f"\\begin{{table}}[h]\n\\caption{{{caption}}}\n\\centering\n{text}\n\\end{{table}}"
+    text = tabulate(body, headers=headers, tablefmt="github", disable_numparse=True)
+    return f"### {table.title}\n\n{explain}\n\n{text}"
+
+
+def report(store: ResultStore, names: Sequence[str], preset: str | None = None, fmt: Format = "markdown",
+           accept: Accept = matches_current_specs) -> str:
+    """The named tables (see TABLES) rendered from `store`, separated by blank lines."""
+    records = store.query(preset=preset)
+    return "\n\n".join(render(TABLES[name], table_rows(TABLES[name], records, preset, accept), fmt)
+                       for name in names)

@@ -12,16 +12,16 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import mftcn_bench
 from mftcn_bench import registry
-from mftcn_bench.data.dataset import MultiViewDataset, ensure_dataset
+from mftcn_bench.data.dataset import MultiViewDataset, check_dataset_config, ensure_dataset
 from mftcn_bench.encoders.base import Encoder, FitBudget
-from mftcn_bench.errors import BenchError
+from mftcn_bench.errors import BenchError, SpecError
 from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.home import BenchHome
 from mftcn_bench.provenance import content_hash, versions
@@ -68,12 +68,26 @@ def prepare(request: RunRequest) -> PreparedRun:
     encoder_entry = registry.get("encoders", request.encoder)
     task_entry = registry.get("tasks", request.task)
     preset, config = resolve_config(encoder_entry.spec, task_entry.spec, request.preset, request.overrides)
-    encoder_spec_from_config(encoder_entry.description, config["encoder"])  # validates overridden values
+    spec = encoder_spec_from_config(encoder_entry.description, config["encoder"])  # validates overrides
+    encoder_entry.load()  # a plugin that fails to import fails here, before any work
     task = task_entry.load()(config["task"], request.seed)
+    dataset_config = getattr(task, "dataset_config", None)
+    if isinstance(dataset_config, Mapping):  # sizes that cannot work are refused before collecting anything
+        check_dataset_config(dataset_config)
+        length = dataset_config.get("episode_length")
+        if isinstance(length, int) and spec.lookback > length:
+            raise SpecError(f"encoder {spec.name!r} has a lookback of {spec.lookback} frames ({spec.frames} at "
+                            f"stride {spec.stride}), longer than the task's {length}-frame episodes; use an "
+                            f"encoder with lookback <= {length} or set task.dataset.episode_length >= "
+                            f"{spec.lookback}")
     return PreparedRun(request, preset, config, encoder_entry, task)
 
 
 def prepare_dataset(prepared: PreparedRun, home: BenchHome, show_progress: bool = True) -> MultiViewDataset:
+    """The task's dataset, after whatever the task needs to collect it (an expert policy for demos)."""
+    prepare_artifacts = getattr(prepared.task, "prepare_artifacts", None)
+    if prepare_artifacts is not None:
+        prepare_artifacts(home, show_progress)
     return ensure_dataset(home.datasets, prepared.task.dataset_config, prepared.task.collector,
                           show_progress=show_progress)
 
@@ -92,6 +106,15 @@ def _progress_bar(name: str, enabled: bool):
     return bar, report
 
 
+def encoder_workdir(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome) -> Path:
+    """The folder of the encoder this run fits or reuses: keyed by its resolved spec, the dataset's
+    fingerprint, the seed and the package version."""
+    config = prepared.config["encoder"]
+    key = content_hash({"encoder": config, "dataset": dataset.fingerprint, "seed": prepared.request.seed,
+                        "version": mftcn_bench.__version__})
+    return home.encoders / f"{config['name']}-{key}"
+
+
 def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
                   show_progress: bool = True) -> tuple[Encoder, dict[str, Any]]:
     """The encoder for this run, fitted on `dataset` or loaded from the shared checkpoint."""
@@ -103,9 +126,7 @@ def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchH
                          f"implement the Encoder protocol (info, needs_fit, fit, embed, save, load)")
     if not encoder.needs_fit:
         return encoder, {"fitted": False, "reused": False}
-    key = content_hash({"encoder": config["encoder"], "dataset": dataset.fingerprint, "seed": seed,
-                        "version": mftcn_bench.__version__})
-    workdir = home.encoders / f"{spec.name}-{key}"
+    workdir = encoder_workdir(prepared, dataset, home)
     with exclusive_lock(home.encoders / f".{workdir.name}.lock"):  # concurrent runs fit it once
         return encoder, _fit_or_load(encoder, spec, dataset, workdir, prepared.request.force, show_progress)
 
@@ -122,11 +143,17 @@ def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset,
         trained = json.loads(fit_file.read_text()) if fit_file.exists() else {}
         return {"fitted": False, **trained, "reused": True, "checkpoint": str(model_path)}
     workdir.mkdir(parents=True, exist_ok=True)
+    for stale in workdir.glob(".*.tmp-*"):  # a checkpoint write cut off by a kill (we hold the lock): never read
+        stale.unlink()
     train = dict(spec.train)
     budget = FitBudget(steps=int(train.get("steps", 0)), max_seconds=train.get("max_seconds") or None)
     bar, report = _progress_bar(spec.name, show_progress)
     try:
         fit_stats = encoder.fit(dataset, budget, report, workdir)
+    except BaseException:
+        if not any(workdir.iterdir()):  # nothing to resume from: leave no empty folder behind
+            workdir.rmdir()
+        raise
     finally:
         bar.close()
     encoder.save(model_path)
@@ -140,6 +167,7 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
     began = time.monotonic()
     prepared = prepare(request)
     store = ResultStore(home.database)
+    store.check_writable()
     dataset = prepare_dataset(prepared, home, show_progress)
     after_data = time.monotonic()
     run_id = content_hash({"config": prepared.config, "preset": prepared.preset, "seed": request.seed,
@@ -150,7 +178,14 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
                           existing.config.get("notes", []))
     encoder, fit = build_encoder(prepared, dataset, home, show_progress)
     after_fit = time.monotonic()
-    result = prepared.task.evaluate(encoder, dataset)
+    run_dir = home.runs / run_id
+    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        result = prepared.task.evaluate(encoder, dataset, run_dir)
+    except BaseException:
+        if not any(run_dir.iterdir()):  # nothing to resume from: leave no empty run folder behind
+            run_dir.rmdir()
+        raise
     done = time.monotonic()
     record = RunRecord(
         run_id=run_id, encoder=request.encoder, task=request.task, preset=prepared.preset,
@@ -164,8 +199,10 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
         artifacts=str(home.runs / run_id),
         curves=result.curves,
     )
-    run_dir = home.runs / run_id
-    run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(run_dir / "result.json", json.dumps(asdict(record), indent=1, sort_keys=True).encode())
-    store.put(record)
+    try:
+        atomic_write_bytes(run_dir / "result.json", json.dumps(asdict(record), indent=1, sort_keys=True).encode())
+        store.put(record)
+    except BaseException:
+        shutil.rmtree(run_dir, ignore_errors=True)  # a result is in the store with its folder, or nowhere
+        raise
     return RunOutcome(record, False, prepared.task.table(result.metrics), result.notes)

@@ -64,25 +64,39 @@ class EncoderSpec:
 
 @dataclass(frozen=True)
 class TaskSpec:
-    """A task variant: its description, its tables (dataset, protocol numbers) and its presets."""
+    """A task variant: its description, its tables (dataset, protocol numbers), its presets and its
+    optional `[leaderboard]` table (metric, higher_is_better, label): how results are ranked, which is not
+    part of a run's config, so it never changes a run's id."""
 
     name: str
     description: str
     default_preset: str
     tables: Mapping[str, Any]
     presets: Mapping[str, Mapping[str, Any]]
+    leaderboard: Mapping[str, Any] = field(default_factory=dict)
+    # `[encoder_defaults.<encoder>]`: what this task sets for one encoder before presets and overrides,
+    # e.g. the state size of true-state and random-state on a domain whose state is not cartpole's.
+    encoder_defaults: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     @classmethod
     def from_dict(cls, name: str, data: Mapping[str, Any]) -> TaskSpec:
         data = dict(data)
         presets = data.pop("presets", {})
+        encoder_defaults = data.pop("encoder_defaults", {})
+        if not isinstance(encoder_defaults, Mapping) or not all(
+                isinstance(v, Mapping) for v in encoder_defaults.values()):
+            raise SpecError(f"task spec {name!r}: [encoder_defaults.<encoder>] must be tables")
         description = data.pop("description", None)
         default_preset = data.pop("default_preset", None)
+        leaderboard = data.pop("leaderboard", {})
+        if not isinstance(leaderboard, Mapping) or not isinstance(leaderboard.get("metric", ""), str):
+            raise SpecError(f"task spec {name!r}: [leaderboard] must be a table with a string 'metric'")
         if not isinstance(description, str):
             raise SpecError(f"task spec {name!r}: 'description' must be a string")
         if not presets or default_preset not in presets:
             raise SpecError(f"task spec {name!r}: 'default_preset' must name one of its [presets.*] tables")
-        return cls(name, description, default_preset, data, presets)
+        return cls(name, description, default_preset, data, presets, dict(leaderboard),
+                   {k: dict(v) for k, v in encoder_defaults.items()})
 
 
 def parse_toml(text: str, origin: str) -> dict[str, Any]:
@@ -179,6 +193,8 @@ def resolve_config(
         },
         "task": {"name": task.name, **copy.deepcopy(dict(task.tables))},
     }
+    defaults = task.encoder_defaults.get(encoder.name, {})
+    config = apply_overrides(config, flatten(defaults, "encoder.").items())
     config = apply_overrides(
         config, flatten(task.presets[preset]).items(), skip_missing_encoder_keys=True
     )

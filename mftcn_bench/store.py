@@ -7,6 +7,7 @@ WAL mode and a busy timeout let a sweep's worker processes write concurrently.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -14,6 +15,8 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+from mftcn_bench.errors import BenchError
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -70,13 +73,24 @@ class ResultStore:
 
     @contextmanager
     def _connect(self) -> Iterator[sqlite3.Connection]:
-        conn = sqlite3.connect(self.path, timeout=self._busy_timeout_s)
         try:
-            conn.execute(f"PRAGMA busy_timeout={int(self._busy_timeout_s * 1000)}")
-            with conn:  # one transaction: committed on success, rolled back on error
-                yield conn
-        finally:
-            conn.close()
+            conn = sqlite3.connect(self.path, timeout=self._busy_timeout_s)
+            try:
+                conn.execute(f"PRAGMA busy_timeout={int(self._busy_timeout_s * 1000)}")
+                with conn:  # one transaction: committed on success, rolled back on error
+                    yield conn
+            finally:
+                conn.close()
+        except sqlite3.DatabaseError as exc:  # not a database, read-only, disk full: one line, not a traceback
+            raise BenchError(f"results database {self.path} cannot be used ({exc}); move it away to start a "
+                             f"new one, or choose another results folder with --home") from None
+
+    def check_writable(self) -> None:
+        """Refuse a read-only database before a run does its work, rather than when it stores the result."""
+        for target in (self.path.parent, self.path):
+            if target.exists() and not os.access(target, os.W_OK):
+                raise BenchError(f"results database {self.path} is read-only ({target} is not writable); "
+                                 f"make it writable or choose another results folder with --home")
 
     def put(self, record: RunRecord) -> None:
         """Insert or replace (after --force) one finished run, atomically."""

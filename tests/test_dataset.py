@@ -62,7 +62,8 @@ def test_episode_contents_and_errors(tmp_path):
     with pytest.raises(DataError, match="no episode 9"):
         dataset.load(9)
     with pytest.raises(DataError, match="unknown split"):
-        dataset.episodes("val")
+        dataset.episodes("validation")
+    assert dataset.episodes("val") == [] and episode.labels is None
     (dataset.root / "ep00002.npz").write_bytes(b"garbage")
     with pytest.raises(DataError, match="checksum"):
         MultiViewDataset(dataset.root).load(2)
@@ -74,3 +75,18 @@ def test_empty_dataset_is_refused(tmp_path):
         MultiViewDataset(tmp_path)
     with pytest.raises(DataError, match="at least 1 train"):
         ensure_dataset(tmp_path, synthetic_config(train_episodes=0), synthetic_collector, show_progress=False)
+
+
+def test_val_split_and_labels_are_kept(tmp_path):
+    def labelled(config, index):
+        arrays = synthetic_collector(config, index)
+        arrays["labels"] = np.full((len(arrays["state"]), 2), index % 2, dtype=np.int8)
+        return arrays
+
+    dataset = ensure_dataset(tmp_path, synthetic_config(val_episodes=2), labelled, show_progress=False)
+    assert dataset.episodes("train") == [0, 1, 2] and dataset.episodes("val") == [3, 4]
+    assert dataset.episodes("test") == [5]
+    labels = dataset.load(4).labels
+    assert labels.shape == (40, 2) and labels.dtype == np.int8 and (labels == 0).all()
+    with pytest.raises(DataError, match="val_episodes must be >= 0"):
+        ensure_dataset(tmp_path, synthetic_config(val_episodes=-1), labelled, show_progress=False)

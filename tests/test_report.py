@@ -1,9 +1,15 @@
+"""The paper tables from stored runs: which runs count, rows, cells, formats."""
+
 import copy
 
+import pytest
+
 from mftcn_bench import registry
-from mftcn_bench.report import matches_current_specs
+from mftcn_bench.paper_tables import TABLES
+from mftcn_bench.report import NOT_IN_PAPER, matches_current_specs, render, report, table_rows
 from mftcn_bench.specs import resolve_config
-from mftcn_bench.store import RunRecord
+from mftcn_bench.store import ResultStore, RunRecord
+from tests.records import make_record, probe_config
 
 
 def record(config, encoder="mftcn4"):
@@ -22,3 +28,77 @@ def test_only_runs_of_the_current_specs_are_tabled():
     other_task["task"]["probe"]["epochs"] += 1
     assert not matches_current_specs(record(other_task))
     assert not matches_current_specs(record(config, encoder="uninstalled-plugin"))
+
+
+# --- the paper tables, filled from synthetic stored runs -----------------------------------------------
+
+def accept_all(record):
+    return True
+
+
+def line_of(text, *needles):
+    lines = [line for line in text.splitlines() if all(n in line for n in needles)]
+    assert len(lines) == 1, (needles, text)
+    return lines[0]
+
+
+def test_swingup_rows_mean_std_seeds_beside_the_paper():
+    records = [make_record("mftcn5", "swingup", seed, {"return_mean": 700.0 + 10 * seed, "return_std": 50.0})
+               for seed in range(3)]
+    records.append(make_record("tcn", "swingup", 0, {"return_mean": 300.0, "return_std": 20.0}))
+    records.append(make_record("mftcn5", "swingup-160", 0, {"return_mean": 790.0, "return_std": 60.0}))
+    text = render(TABLES["swingup"], table_rows(TABLES["swingup"], records, accept=accept_all))
+    row = line_of(text, "96x48", "mftcn5")
+    assert "| 3 " in row and "710.00 ± 10.00 (701.30)" in row and "50.00 ± 0.00 (80.14)" in row
+    assert "790.00 (787.47)" in line_of(text, "160x160", "mftcn5", "swingup-160 ")
+    assert "- (861.41)" in line_of(text, "True State")  # a paper row with no stored run
+    assert "300.00 " in line_of(text, NOT_IN_PAPER, "tcn")
+    assert "ddof=1" in text
+
+
+def test_probe_rows_are_matched_by_embedding_size_and_stale_runs_left_out():
+    records = [make_record("mftcn4", "cartpole-probe", s, {"average": v}, config=probe_config("mftcn4", "quick", 8))
+               for s, v in ((0, 0.02), (1, 0.04))]
+    records.append(make_record("mftcn4", "cartpole-probe", 0, {"average": 9.0}, config=probe_config("mftcn4")))
+    stale = probe_config("mftcn4", "quick", 8)
+    stale["encoder"]["train"]["lr"] = 0.5
+    records.append(make_record("mftcn4", "cartpole-probe", 2, {"average": 100.0}, config=stale))
+    rows = {(r.labels, r.preset): r for r in table_rows(TABLES["probe"], records)}
+    eight = rows[(("8", "4"), "quick")]
+    assert eight.seeds == 2 and eight.stats[0].mean == pytest.approx(0.03) and eight.paper[0] == 0.0207
+    assert rows[(("32", "4"), "quick")].stats[0].mean == 9.0
+    assert rows[(("8", "1"), None)].seeds == 0
+
+
+def test_latest_run_of_a_seed_counts():
+    old = make_record("mftcn1", "pouring", 0, {"static_error": 40.0}, created_at="2026-01-01T00:00:00+00:00")
+    new = make_record("mftcn1", "pouring", 0, {"static_error": 20.0}, created_at="2026-02-01T00:00:00+00:00")
+    (row,) = [r for r in table_rows(TABLES["pouring"], [new, old], accept=accept_all) if r.encoder == "mftcn1"]
+    assert row.seeds == 1 and row.stats[0].mean == 20.0
+
+
+def test_pouring_attribute_columns_and_paper_dashes(tmp_path):
+    metrics = {f"error_{a}": 10.0 for a in ("contact", "within_distance", "liquid_flowing", "has_liquid",
+                                            "reaching", "receding", "going_up", "coming_down")}
+    metrics["error_tilt_angle"] = 33.3
+    store = ResultStore(tmp_path / "r.sqlite")
+    store.put(make_record("tcn", "pouring", 0, metrics))
+    text = report(store, ["pouring-attributes"], accept=accept_all)
+    assert "33.3 (35.9)" in line_of(text, "| TCN")  # angle is the paper's second column
+    assert "10.0 (-)" in line_of(text, "| TCN")  # the paper has no motion figures for TCN
+    assert "- (37.5)" in line_of(text, "mfTCN^29")
+
+
+def test_latex_format_escapes_and_uses_pm(tmp_path):
+    store = ResultStore(tmp_path / "r.sqlite")
+    for seed in (0, 1):
+        store.put(make_record("mftcn13", "pouring", seed, {"static_error": 15.0 + seed, "motion_error": 20.0,
+                                                           "alignment_error": 10.0}))
+    text = report(store, ["pouring"], fmt="latex", accept=accept_all)
+    assert text.startswith("\\begin{table}") and "\\begin{tabular}" in text
+    assert "15.5 $\\pm$ 0.7 (16.8)" in text and "mfTCN\\^{}13" in text and "|" not in text
+
+
+def test_every_table_renders_from_an_empty_store(tmp_path):
+    text = report(ResultStore(tmp_path / "r.sqlite"), list(TABLES))
+    assert text.count("### ") == 5 and "- (0.0198)" in text and "- (811.10)" in text and "- (8.9)" in text

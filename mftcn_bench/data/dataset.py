@@ -3,7 +3,8 @@
 Layout of `<home>/datasets/<name>-<id>/`:
     manifest.json      config, seed, versions, per-chunk checksums; written last, atomically
     progress.json      chunks finished so far while collecting (lets a killed collection resume)
-    ep00000.npz ...    per episode: frames [views, T, H, W, 3] uint8, state [T, S], action [T, A]
+    ep00000.npz ...    per episode: frames [views, T, H, W, 3] uint8, state [T, S], action [T, A], and
+                       optionally labels [T, L] (int, per-frame attributes; -1 where unknown)
 
 The dataset id is a hash of its config and the collector's format version, so the same spec and seed
 reuse the dataset. Episodes are loaded one at a time (with a small cache), never the whole dataset.
@@ -26,7 +27,7 @@ from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.provenance import content_hash, versions
 
 FORMAT_VERSION = 1
-SPLITS = ("train", "test")
+SPLITS = ("train", "val", "test")  # "val" only holds episodes when the config asks for val_episodes
 
 # An episode collector: (dataset config, episode index) -> arrays of that episode.
 Collector = Callable[[Mapping[str, Any], int], dict[str, np.ndarray]]
@@ -40,6 +41,7 @@ class Episode:
     frames: np.ndarray  # [views, T, H, W, 3] uint8
     state: np.ndarray  # [T, S] true state as the simulator gives it
     action: np.ndarray  # [T, A] action taken after frame t was observed
+    labels: np.ndarray | None = None  # [T, L] per-frame attributes, for datasets that have them
 
     @property
     def length(self) -> int:
@@ -54,10 +56,15 @@ class MultiViewDataset:
         manifest_path = self.root / "manifest.json"
         if not manifest_path.exists():
             raise DataError(f"{self.root} is not a collected dataset (no manifest.json)")
-        self.manifest: dict[str, Any] = json.loads(manifest_path.read_text())
-        self._chunks = {int(c["episode"]): c for c in self.manifest["chunks"]}
+        try:
+            self.manifest: dict[str, Any] = json.loads(manifest_path.read_text())
+            self._chunks = {int(c["episode"]): c for c in self.manifest["chunks"]}
+        except (ValueError, KeyError, TypeError) as exc:
+            raise DataError(f"dataset manifest {manifest_path} is not a valid manifest ({type(exc).__name__}: "
+                            f"{exc}); delete the folder {self.root} to collect the dataset again") from None
         if not self._chunks:
-            raise DataError(f"dataset {self.root} is empty: it has no episodes")
+            raise DataError(f"dataset {self.root} is empty: its manifest lists no episodes; delete the folder "
+                            f"to collect it again")
         self._cache: OrderedDict[int, Episode] = OrderedDict()
         self._cache_size = cache_episodes
 
@@ -99,7 +106,7 @@ class MultiViewDataset:
         if chunk is None:
             raise DataError(f"dataset {self.root} has no episode {index}")
         arrays = read_chunk(self.root / chunk["file"], chunk["sha256"])
-        episode = Episode(index, arrays["frames"], arrays["state"], arrays["action"])
+        episode = Episode(index, arrays["frames"], arrays["state"], arrays["action"], arrays.get("labels"))
         self._cache[index] = episode
         while len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)
@@ -117,14 +124,30 @@ def dataset_id(config: Mapping[str, Any]) -> str:
 def _episode_plan(config: Mapping[str, Any]) -> list[tuple[int, str]]:
     train, test = int(config["train_episodes"]), int(config["test_episodes"])
     if train < 1 or test < 1:
-        raise DataError(f"a dataset needs at least 1 train and 1 test episode, got {train} and {test}")
-    return [(i, "train") for i in range(train)] + [(train + i, "test") for i in range(test)]
+        raise DataError(f"a dataset needs at least 1 train and 1 test episode, got {train} and {test}; "
+                        f"set train_episodes and test_episodes >= 1")
+    val = int(config.get("val_episodes", 0))
+    if val < 0:
+        raise DataError(f"val_episodes must be >= 0, got {val}")
+    return ([(i, "train") for i in range(train)] + [(train + i, "val") for i in range(val)]
+            + [(train + val + i, "test") for i in range(test)])
+
+
+def check_dataset_config(config: Mapping[str, Any]) -> None:
+    """Refuse, before anything is collected, sizes no dataset can have (episode counts, frames, pixels)."""
+    if "train_episodes" in config and "test_episodes" in config:
+        _episode_plan(config)
+    for key in ("episode_length", "height", "width"):
+        value = config.get(key, 1)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise DataError(f"dataset {config.get('name')!r}: {key} must be an integer >= 1, got {value!r}")
 
 
 def ensure_dataset(
     datasets_dir: Path, config: Mapping[str, Any], collector: Collector, *, show_progress: bool = True
 ) -> MultiViewDataset:
     """The dataset for `config`, collected (or finished, after an interruption) if needed."""
+    check_dataset_config(config)
     ident = dataset_id(config)
     root = datasets_dir / f"{config['name']}-{ident}"
     if (root / "manifest.json").exists():
@@ -133,6 +156,8 @@ def ensure_dataset(
         if (root / "manifest.json").exists():  # another process finished it while we waited
             return MultiViewDataset(root)
         root.mkdir(parents=True, exist_ok=True)
+        for stale in root.glob(".*.tmp-*"):  # a write cut off by a kill (we hold the lock): never read
+            stale.unlink()
         progress_path = root / "progress.json"
         done: dict[str, dict[str, Any]] = {}
         if progress_path.exists():

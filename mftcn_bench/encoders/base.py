@@ -100,7 +100,7 @@ def embed_episode(encoder: Encoder, frames: np.ndarray, state: np.ndarray | None
         for start in range(0, len(frames), batch_size):
             rows = index[start:start + batch_size]
             batch = ClipBatch(frames[rows], None if state is None else state[rows])
-            parts.append(encoder.embed(batch))
+            parts.append(check_embeddings(encoder, encoder.embed(batch), len(rows)))
         out = np.concatenate(parts)
     return check_embeddings(encoder, out, len(frames))
 

@@ -60,8 +60,21 @@ def clip_noise(clip: np.ndarray, seed: int, dim: int, std: float) -> np.ndarray:
     return (rng.standard_normal(dim) * std).astype(np.float32)
 
 
+class RandomStateStream:
+    """Fresh Gaussian noise at every step of every environment, reproducible from the seed."""
+
+    def __init__(self, seed: int, num_envs: int, dim: int, std: float) -> None:
+        self._rngs = [np.random.default_rng([seed, i]) for i in range(num_envs)]
+        self.dim, self.std = dim, std
+
+    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+        return np.stack([rng.standard_normal(self.dim) * self.std for rng in self._rngs]).astype(np.float32)
+
+
 class RandomStateEncoder(SpecEncoder):
     """Noise of a fixed size: the lower bound (a policy or probe that sees nothing of the state)."""
+
+    uses_pixels = False  # in a rollout (`streaming`) the noise needs no rendered frame
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         super().__init__(spec, image_shape, seed)
@@ -72,6 +85,10 @@ class RandomStateEncoder(SpecEncoder):
         dim, std = self.spec.embedding_dim, self.model_config.std
         out = [clip_noise(clip, self.seed, dim, std) for clip in clips.frames]
         return np.stack(out) if out else np.zeros((0, dim), np.float32)
+
+    def streaming(self, num_envs: int) -> RandomStateStream:
+        """Noise for rollouts: each environment draws from its own generator seeded by (seed, index)."""
+        return RandomStateStream(self.seed, num_envs, self.spec.embedding_dim, self.model_config.std)
 
     def save(self, path: Path) -> None:
         save_payload(path, {"seed": self.seed, "embedding_dim": self.spec.embedding_dim})
@@ -100,6 +117,8 @@ def state_embedding(state: np.ndarray) -> np.ndarray:
 class TrueStateEncoder(SpecEncoder):
     """The simulator's state as the embedding: the upper bound."""
 
+    uses_pixels = False
+
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         super().__init__(spec, image_shape, seed)
         parse_table(EmptyModelConfig, spec.name, "model", spec.model)
@@ -112,7 +131,18 @@ class TrueStateEncoder(SpecEncoder):
         state = np.asarray(clips.state)
         if state.ndim != 3:
             raise BenchError(f"{self.spec.name} expects clip states [B, n, S], got shape {state.shape}")
-        out = state_embedding(state[:, -1].astype(np.float64)).astype(np.float32)
+        return self.embed_state(state[:, -1])
+
+    def streaming(self, num_envs: int) -> TrueStateEncoder:
+        """The state needs no history: the encoder itself serves rollouts (`push`)."""
+        return self
+
+    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+        return self.embed_state(state)
+
+    def embed_state(self, state: np.ndarray) -> np.ndarray:
+        """States [B, S] -> float32 embeddings [B, D]."""
+        out = state_embedding(np.asarray(state, dtype=np.float64)).astype(np.float32)
         if out.shape[1] != self.spec.embedding_dim:
             raise SpecError(f"{self.spec.name}: the task's state gives {out.shape[1]} values per frame but "
                             f"embedding_dim is {self.spec.embedding_dim}; set encoder.embedding_dim="
@@ -151,6 +181,8 @@ class PixelsCNNNet(nn.Module):
 
 class PixelsCNNEncoder(FrameHeadEncoder):
     """Raw pixels through a CNN: untrained (seeded random weights) unless a control task trains `net`."""
+
+    trains_with_policy = True  # control tasks feed it raw clips and train `net` with the policy
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         super().__init__(spec, image_shape, seed)

@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import os
+import pickle
 from collections.abc import Callable, Mapping
 from dataclasses import fields
 from pathlib import Path
@@ -57,10 +58,19 @@ def save_payload(path: Path, payload: Any) -> None:
     os.replace(tmp, path)
 
 
+def load_failure(exc: BaseException) -> str:
+    """Why `torch.load(weights_only=True)` refused a file, in a few words (its own messages span lines)."""
+    if isinstance(exc, pickle.UnpicklingError):
+        return "it holds pickled Python objects, which are never loaded; only tensors and plain data are"
+    if isinstance(exc, EOFError | RuntimeError):
+        return f"{type(exc).__name__}: truncated or not a torch checkpoint"
+    return type(exc).__name__
+
+
 def unloadable(path: Path, exc: BaseException, redo: str) -> BenchError:
     """The one-line error for a checkpoint that cannot be read; `redo` is what deleting it leads to."""
-    return BenchError(f"encoder checkpoint {path} cannot be loaded ({type(exc).__name__}); "
-                      f"delete it to {redo} again")
+    return BenchError(f"encoder checkpoint {path} cannot be loaded ({load_failure(exc)}); "
+                      f"rerun with --force (or delete it) to {redo} again")
 
 
 def load_payload(path: Path) -> Any:
@@ -84,8 +94,10 @@ def load_network(path: Path, net: nn.Module, image_shape: tuple[int, int]) -> No
     except Exception as exc:  # noqa: BLE001 - truncated, foreign or mismatched file
         raise unloadable(path, exc, "train") from None
     if tuple(state["image_shape"]) != tuple(image_shape):
-        raise SpecError(f"encoder checkpoint {path} was trained on {tuple(state['image_shape'])} images, "
-                        f"not {tuple(image_shape)}")
+        trained = tuple(state["image_shape"])
+        raise SpecError(f"encoder checkpoint {path} was trained on {trained[0]}x{trained[1]} (HxW) images, not "
+                        f"{image_shape[0]}x{image_shape[1]}; it only embeds {trained[0]}x{trained[1]} frames: "
+                        f"use a dataset of that size or rerun with --force to train it on these")
     net.eval()
 
 

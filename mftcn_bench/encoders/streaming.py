@@ -51,9 +51,9 @@ class StreamingEmbedder:
         self._started[:] = False
 
     @torch.no_grad()
-    def push(self, frames: np.ndarray, episode_start: np.ndarray) -> np.ndarray:
+    def push(self, frames: np.ndarray, episode_start: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
         """New frames uint8 [E, H, W, 3] and which environments start an episode with them (bool [E])
-        -> float32 [E, D], the embedding of the clip ending at each new frame."""
+        -> float32 [E, D], the embedding of the clip ending at each new frame. `state` is not used."""
         frames = np.asarray(frames)
         start = np.asarray(episode_start, dtype=bool).reshape(-1)
         if frames.ndim != 4 or frames.shape[0] != self.num_envs or frames.shape[-1] != 3:

@@ -20,7 +20,7 @@ import torch
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import Episode, MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
-from mftcn_bench.encoders.common import parse_table, save_payload
+from mftcn_bench.encoders.common import load_failure, parse_table, save_payload
 from mftcn_bench.encoders.losses import multiview_npairs_loss
 from mftcn_bench.encoders.sampling import plan_batch
 from mftcn_bench.errors import SpecError, TrainingError
@@ -104,8 +104,11 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
 
     Checkpoints (model, optimizer, step, pool members, random states) go to `workdir/train_checkpoint.pt`
     every `checkpoint_every` steps and training resumes from there bit for bit. A non-finite loss stops
-    training with the step. Returns {'final_loss', 'steps', 'seconds'}.
-    """
+    training with the step. Returns {'final_loss', 'steps', 'seconds', 'resumed_from_step'} (0 unless a
+    checkpoint was found)."""
+    if not (np.isfinite(config.lr) and config.lr > 0) or not config.weight_decay >= 0:
+        raise SpecError(f"encoder.train.lr must be a finite number > 0 and encoder.train.weight_decay >= 0, "
+                        f"got {config.lr} and {config.weight_decay}")
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
     opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
@@ -118,8 +121,8 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
             net.load_state_dict(state["model"])
             opt.load_state_dict(state["optimizer"])
         except Exception as exc:  # noqa: BLE001 - a truncated or foreign file
-            raise TrainingError(f"training checkpoint {checkpoint} cannot be loaded ({type(exc).__name__}); "
-                                f"delete it to train from the start") from None
+            raise TrainingError(f"training checkpoint {checkpoint} cannot be loaded ({load_failure(exc)}); "
+                                f"rerun with --force (or delete it) to train from the start") from None
         start, members = int(state["step"]), [int(i) for i in state["pool"]]
         torch.set_rng_state(state["torch_rng"])
         rng.bit_generator.state = json.loads(state["numpy_rng"])
@@ -132,7 +135,7 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
         loss_value = float(loss.detach())
         if not np.isfinite(loss_value):
             raise TrainingError(f"training loss became {loss_value} at step {step}; no result was written "
-                                f"(try a lower train.lr)")
+                                f"(try a lower encoder.train.lr than {config.lr:g})")
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -143,7 +146,8 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
         if budget.max_seconds and time.monotonic() - began > budget.max_seconds:
             break
     net.eval()
-    return {"final_loss": loss_value, "steps": float(done), "seconds": time.monotonic() - began}
+    return {"final_loss": loss_value, "steps": float(done), "seconds": time.monotonic() - began,
+            "resumed_from_step": float(start)}
 
 
 def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: ContrastiveTrainConfig,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol
 
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
@@ -25,7 +26,11 @@ class TaskResult:
 
 
 class Task(Protocol):
-    """Constructed as `cls(config, seed)` from the resolved `task` table."""
+    """Constructed as `cls(config, seed)` from the resolved `task` table.
+
+    A task that needs something before its data can be collected (the cheetah task's expert policy) also
+    has `prepare_artifacts(home: BenchHome, show_progress: bool) -> None`; the runner calls it first.
+    """
 
     @property
     def dataset_config(self) -> Mapping[str, Any]: ...
@@ -33,7 +38,10 @@ class Task(Protocol):
     @property
     def collector(self) -> Collector: ...
 
-    def evaluate(self, encoder: Encoder, dataset: MultiViewDataset) -> TaskResult: ...
+    def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path) -> TaskResult:
+        """Metrics of the frozen encoder. `workdir` is the run's own folder (the same on a rerun of the same
+        run): checkpoints of long evaluations go there, so a killed run resumes; plots too."""
+        ...
 
     def table(self, metrics: Mapping[str, Any]) -> list[dict[str, Any]]:
         """Rows of the printed result table."""

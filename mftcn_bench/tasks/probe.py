@@ -15,6 +15,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -47,6 +48,20 @@ class ProbeConfig:
     early_stopping: bool
     validation_fraction: float
     patience: int
+
+    def __post_init__(self) -> None:
+        """Refuse values the MLP would reject only after the dataset and the encoder are made."""
+        fraction = self.validation_fraction
+        rules = {"epochs": self.epochs >= 1, "batch_size": self.batch_size >= 1, "patience": self.patience >= 1,
+                 "lr": self.lr > 0, "tol": self.tol >= 0,
+                 "validation_fraction": 0 <= fraction < 1 and (fraction > 0 or not self.early_stopping),
+                 "hidden": bool(self.hidden) and all(h >= 1 for h in self.hidden)}
+        allowed = {"epochs": ">= 1", "batch_size": ">= 1", "patience": ">= 1", "lr": "> 0", "tol": ">= 0",
+                   "validation_fraction": "in [0, 1), and > 0 with early_stopping",
+                   "hidden": "a non-empty list of sizes >= 1"}
+        for key, ok in rules.items():
+            if not ok:
+                raise SpecError(f"task.probe.{key} must be {allowed[key]}, got {getattr(self, key)}")
 
 
 def state_targets(state: np.ndarray) -> np.ndarray:
@@ -104,7 +119,7 @@ class CartpoleProbe:
             ys.append(state_targets(episode.state))
         return np.concatenate(xs), np.concatenate(ys)
 
-    def evaluate(self, encoder: Encoder, dataset: MultiViewDataset) -> TaskResult:
+    def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path | None = None) -> TaskResult:
         x_train, y_train = self.features(encoder, dataset, "train")
         x_test, y_test = self.features(encoder, dataset, "test")
         regressor = make_pipeline(StandardScaler(), MLPRegressor(

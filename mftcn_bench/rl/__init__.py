@@ -1,0 +1,1 @@
+"""Reinforcement learning on frozen embeddings: batched suite environments, observers and PPO."""

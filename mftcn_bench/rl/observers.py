@@ -1,0 +1,90 @@
+"""What the policy sees: a frozen encoder's embedding of the stream of frames an environment produces.
+
+An observer is fed every new frame of `num_envs` environments stepped together (rendered frames, the
+simulator state, and which environments start an episode with this frame) and returns the embedding of
+the clip ending at that frame. Encoders with a `streaming(num_envs)` method (mfTCN, TCN, true state,
+random state) provide their own incremental version; any other encoder is served by `ClipWindowObserver`,
+which keeps the raw frames of the lookback window and calls the encoder's batch `embed`. Either way the
+clip follows the rule of `mftcn_bench.data.clips` (frames before an episode's first clamp to it), so a
+policy sees exactly the embeddings the encoder gives the same episode offline.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from mftcn_bench.data.clips import clip_offsets
+from mftcn_bench.encoders.base import ClipBatch, Encoder, check_embeddings
+
+
+class Observer(Protocol):
+    """Embeds the clip ending at each new frame of `num_envs` environments."""
+
+    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """frames uint8 [E, H, W, 3] (None when the encoder does not use pixels), episode_start bool [E],
+        state float [E, S] -> float32 [E, D]."""
+        ...
+
+
+def uses_pixels(encoder: Encoder) -> bool:
+    """Whether the encoder reads rendered frames (true state and random state do not)."""
+    return bool(getattr(encoder, "uses_pixels", True))
+
+
+class ClipWindowObserver:
+    """Keeps each environment's last `lookback` frames and states; embeds clips with `encoder.embed`."""
+
+    def __init__(self, encoder: Encoder, num_envs: int) -> None:
+        info = encoder.info
+        self.encoder, self.num_envs = encoder, num_envs
+        self.lookback = info.lookback
+        self._offsets = clip_offsets(info.frames, info.stride)
+        self._frames: np.ndarray | None = None  # [E, lookback, H, W, 3]
+        self._state: np.ndarray | None = None  # [E, lookback, S]
+        self._slot = -1
+
+    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+        start = np.asarray(episode_start, dtype=bool)
+        if self._state is None:
+            if not start.all():
+                raise ValueError("the first frame pushed must start an episode in every environment")
+            self._state = np.zeros((self.num_envs, self.lookback, state.shape[1]), dtype=np.float64)
+            if frames is not None:
+                self._frames = np.zeros((self.num_envs, self.lookback, *frames.shape[1:]), dtype=np.uint8)
+        self._slot = (self._slot + 1) % self.lookback
+        self._state[:, self._slot] = state
+        self._state[start] = state[start, None]
+        if frames is not None:
+            self._frames[:, self._slot] = frames
+            self._frames[start] = frames[start, None]
+        index = (self._slot + self._offsets) % self.lookback
+        clip_frames = (self._frames[:, index] if frames is not None
+                       else np.zeros((self.num_envs, len(index), 1, 1, 3), dtype=np.uint8))
+        out = self.encoder.embed(ClipBatch(clip_frames, self._state[:, index]))
+        return check_embeddings(self.encoder, out, self.num_envs)
+
+
+class _StreamingObserver:
+    def __init__(self, encoder: Encoder, num_envs: int) -> None:
+        self.encoder, self.num_envs = encoder, num_envs
+        self._stream = encoder.streaming(num_envs)
+
+    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+        out = self._stream.push(frames, episode_start, state)
+        return check_embeddings(self.encoder, out, self.num_envs)
+
+
+class StateObserver:
+    """The simulator state itself (for expert policies, which are trained on true state)."""
+
+    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+        return np.asarray(state, dtype=np.float32)
+
+
+def make_observer(encoder: Encoder, num_envs: int) -> Observer:
+    """The encoder's own streaming embedder when it has one, otherwise a clip window over `embed`."""
+    if callable(getattr(encoder, "streaming", None)):
+        return _StreamingObserver(encoder, num_envs)
+    return ClipWindowObserver(encoder, num_envs)

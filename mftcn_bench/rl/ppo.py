@@ -1,0 +1,276 @@
+"""PPO on a frozen embedding with torchrl: ClipPPOLoss, GAE and a Collector over `SuiteBatchEnv`.
+
+One training batch is `episodes_per_batch` whole episodes of every environment: the collector resets
+the batch at the start of each one and each environment's initial state comes from (seed, instance,
+episode number), so the data of batch k is a pure function of the seed and the networks at batch k. A
+killed run resumes from its last checkpoint (networks, optimiser, observation statistics, RNG, curves)
+and continues exactly where the checkpoint left it.
+
+What made PPO learn swing-up from state reliably here (measured, see the task spec): action repeat,
+many environments stepped in one process, running observation normalisation (statistics updated between
+batches and saved with the networks), reward scaling, a small
+initial policy output, gradient-norm clipping, value clipping and a linearly annealed learning rate. The
+policy's only input is the observation: the encoder's embedding (or, for pixels-cnn, the raw clip through
+a CNN trained by the PPO losses of both heads).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn.distributions.continuous import AddStateIndependentNormalScale
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.envs import ExplorationType, set_exploration_type
+from torchrl.modules import MLP, ActorValueOperator, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
+
+from mftcn_bench.errors import SpecError, TrainingError
+from mftcn_bench.fileio import atomic_write_bytes
+from mftcn_bench.rl.suite_env import SuiteBatchEnv
+
+DISTRIBUTIONS = {"tanh_normal": TanhNormal, "normal": IndependentNormal}
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """The `[ppo]` table of a control task's spec."""
+
+    frames: int                       # env (physics) frames of training, action repeat included
+    num_envs: int
+    episodes_per_batch: int           # whole episodes of every environment in one batch
+    epochs: int
+    minibatch_size: int
+    lr: float
+    anneal_lr: bool
+    gamma: float
+    lmbda: float
+    clip_epsilon: float
+    clip_value: float
+    entropy_coeff: float
+    critic_coeff: float
+    max_grad_norm: float
+    reward_scale: float
+    hidden: list[int] = field(default_factory=lambda: [256, 256])
+    policy_init_scale: float = 0.01   # last policy layer's weights scaled down: actions start near 0
+    distribution: str = "tanh_normal"  # or "normal" (actions clipped to [-1, 1] by the environment)
+    state_independent_std: bool = False  # a learned log-std per action dimension instead of a network output
+    normalize_observations: bool = True
+    eval_episodes: int = 100
+    checkpoint_every: int = 10        # batches
+
+
+@dataclass
+class TrainState:
+    batch: int = 0
+    frames: int = 0
+    wall_s: float = 0.0
+    curve_frames: list[float] = field(default_factory=list)
+    curve_wall_s: list[float] = field(default_factory=list)
+    curve_return: list[float] = field(default_factory=list)
+
+
+Progress = Callable[[int, int, dict[str, float]], None]
+
+
+class RunningNormalizer(nn.Module):
+    """(x - mean) / std with statistics of every observation collected so far, updated once per batch
+    (between rollouts, so a batch is collected with fixed statistics) and saved with the networks."""
+
+    def __init__(self, size: int, clip: float = 10.0, eps: float = 1e-8) -> None:
+        super().__init__()
+        self.clip, self.eps = clip, eps
+        self.register_buffer("mean", torch.zeros(size, dtype=torch.float64))
+        self.register_buffer("var", torch.ones(size, dtype=torch.float64))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """Merge the statistics of `x` [..., size] (parallel-variance formula)."""
+        x = x.reshape(-1, x.shape[-1]).double()
+        n, mean, var = x.shape[0], x.mean(0), x.var(0, unbiased=False)
+        total = self.count + n
+        delta = mean - self.mean
+        self.var.copy_((self.var * self.count + var * n + delta**2 * self.count * n / total) / total)
+        self.mean.add_(delta * n / total)
+        self.count.copy_(total)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.count == 0:
+            return x
+        z = (x - self.mean.to(x.dtype)) / torch.sqrt(self.var.to(x.dtype) + self.eps)
+        return z.clamp(-self.clip, self.clip)
+
+
+class PolicyNetworks(nn.Module):
+    """Actor and critic (with a shared trunk for pixel input); built from the environment's specs."""
+
+    def __init__(self, env: SuiteBatchEnv, config: PPOConfig, trunk: nn.Module | None) -> None:
+        super().__init__()
+        action_dim = env.action_spec.shape[-1]
+        in_key = "observation" if trunk is None else "pixels"
+        self.normalizer: RunningNormalizer | None = None
+        if trunk is None:
+            features = env.observation_spec["observation"].shape[-1]
+            if config.normalize_observations:
+                self.normalizer = RunningNormalizer(features)
+            common = TensorDictModule(self.normalizer or nn.Identity(), in_keys=[in_key], out_keys=["features"])
+        else:
+            common = TensorDictModule(trunk, in_keys=[in_key], out_keys=["features"])
+            features = trunk.out_features
+        if config.distribution not in DISTRIBUTIONS:
+            raise SpecError(f"[ppo] distribution must be one of {', '.join(DISTRIBUTIONS)}, "
+                            f"got {config.distribution!r}")
+        outputs = action_dim if config.state_independent_std else 2 * action_dim
+        scale = AddStateIndependentNormalScale(action_dim) if config.state_independent_std else NormalParamExtractor()
+        policy_net = nn.Sequential(MLP(in_features=features, out_features=outputs, num_cells=config.hidden,
+                                       activation_class=nn.Tanh), scale)
+        last = policy_net[0][-1]
+        with torch.no_grad():
+            last.weight.mul_(config.policy_init_scale)
+            last.bias.zero_()
+        policy_head = TensorDictModule(policy_net, in_keys=["features"], out_keys=["loc", "scale"])
+        value_net = MLP(in_features=features, out_features=1, num_cells=config.hidden, activation_class=nn.Tanh)
+        value_head = ValueOperator(value_net, in_keys=["features"])
+        actor = ProbabilisticActor(policy_head, in_keys=["loc", "scale"], spec=env.action_spec,
+                                   distribution_class=DISTRIBUTIONS[config.distribution], return_log_prob=True)
+        self.operator = ActorValueOperator(common, actor, value_head)
+
+    @property
+    def policy(self) -> TensorDictModule:
+        return self.operator.get_policy_operator()
+
+    @property
+    def value(self) -> TensorDictModule:
+        return self.operator.get_value_operator()
+
+
+def episode_returns(batch, num_envs: int, agent_steps: int) -> np.ndarray:
+    """Undiscounted returns of the whole episodes in a batch [num_envs, episodes x agent_steps]."""
+    reward = batch.get(("next", "reward")).reshape(num_envs, -1, agent_steps)
+    return reward.sum(-1).flatten().double().numpy()
+
+
+def train_ppo(make_env: Callable[[int, int], SuiteBatchEnv], config: PPOConfig, seed: int, workdir: Path,
+              progress: Progress, trunk: nn.Module | None = None) -> tuple[PolicyNetworks, TrainState]:
+    """Train a policy; resumes from `workdir/ppo_checkpoint.pt` if a killed run left one."""
+    torch.manual_seed(seed)
+    env = make_env(config.num_envs, seed)
+    agent_steps = env.config.agent_steps
+    nets = PolicyNetworks(env, config, trunk)
+    loss = ClipPPOLoss(nets.policy, nets.value, clip_epsilon=config.clip_epsilon, clip_value=config.clip_value,
+                       entropy_coeff=config.entropy_coeff, critic_coeff=config.critic_coeff,
+                       loss_critic_type="l2", normalize_advantage=True)
+    advantage = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=nets.value, average_gae=False)
+    optimizer = torch.optim.Adam(loss.parameters(), lr=config.lr)
+    batch_steps = config.num_envs * config.episodes_per_batch * agent_steps
+    frames_per_batch = batch_steps * env.config.action_repeat
+    total_batches = max(1, math.ceil(config.frames / frames_per_batch))
+
+    state, rng = TrainState(), None
+    workdir.mkdir(parents=True, exist_ok=True)
+    checkpoint = workdir / "ppo_checkpoint.pt"
+    if checkpoint.exists():
+        state, rng = _load_checkpoint(checkpoint, nets, optimizer)
+    collector = Collector(env, nets.policy, frames_per_batch=batch_steps,
+                          total_frames=(total_batches - state.batch) * batch_steps, reset_at_each_iter=True,
+                          auto_register_policy_transforms=False)
+    if rng is not None:  # after the collector's construction, which may draw from it
+        torch.set_rng_state(rng)
+    # Batch k's episodes start from initial states numbered k * episodes_per_batch, ... (see SuiteBatchEnv):
+    # set before each rollout, whatever resets the collector made in between.
+    env.episode_index = state.batch * config.episodes_per_batch
+    began = time.monotonic() - state.wall_s
+    for batch in collector:
+        returns = episode_returns(batch, config.num_envs, agent_steps)
+        if nets.normalizer is not None:
+            nets.normalizer.update(batch.get("observation"))
+        if config.anneal_lr:
+            for group in optimizer.param_groups:
+                group["lr"] = config.lr * (1.0 - state.batch / total_batches)
+        stats = _update(batch, loss, advantage, optimizer, config)
+        state.batch += 1
+        state.frames += frames_per_batch
+        state.wall_s = time.monotonic() - began
+        state.curve_frames.append(float(state.frames))
+        state.curve_wall_s.append(state.wall_s)
+        state.curve_return.append(float(returns.mean()))
+        if state.batch % config.checkpoint_every == 0 or state.batch == total_batches:
+            _save_checkpoint(checkpoint, nets, optimizer, state)
+        progress(state.batch, total_batches, {"return": float(returns.mean()), **stats})
+        env.episode_index = state.batch * config.episodes_per_batch
+    collector.shutdown()
+    return nets, state
+
+
+def _update(batch, loss: ClipPPOLoss, advantage: GAE, optimizer: torch.optim.Optimizer,
+            config: PPOConfig) -> dict[str, float]:
+    batch = batch.clone()
+    batch.set(("next", "reward"), batch.get(("next", "reward")) * config.reward_scale)
+    with torch.no_grad():
+        advantage(batch)
+    flat = batch.reshape(-1)
+    n = flat.shape[0]
+    totals: dict[str, float] = {}
+    count = 0
+    for _ in range(config.epochs):
+        for index in torch.randperm(n).split(config.minibatch_size):
+            parts = loss(flat[index])
+            total = parts["loss_objective"] + parts["loss_critic"] + parts.get("loss_entropy", 0.0)
+            if not torch.isfinite(total):
+                raise TrainingError(f"PPO loss became {float(total)}; stopping without a result")
+            optimizer.zero_grad()
+            total.backward()
+            nn.utils.clip_grad_norm_(loss.parameters(), config.max_grad_norm)
+            optimizer.step()
+            for key in ("loss_objective", "loss_critic", "entropy"):
+                if key in parts.keys():
+                    totals[key] = totals.get(key, 0.0) + float(parts[key].detach().mean())
+            count += 1
+    return {k: v / count for k, v in totals.items()}
+
+
+def _save_checkpoint(path: Path, nets: PolicyNetworks, optimizer: torch.optim.Optimizer,
+                     state: TrainState) -> None:
+    import io
+
+    payload = {"nets": nets.state_dict(), "optimizer": optimizer.state_dict(), "state": asdict(state),
+               "torch_rng": torch.get_rng_state()}
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def _load_checkpoint(path: Path, nets: PolicyNetworks,
+                     optimizer: torch.optim.Optimizer) -> tuple[TrainState, torch.Tensor]:
+    try:
+        payload = torch.load(path, weights_only=True)
+        nets.load_state_dict(payload["nets"])
+        optimizer.load_state_dict(payload["optimizer"])
+        return TrainState(**payload["state"]), payload["torch_rng"]
+    except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint gets the same one-line answer
+        raise TrainingError(f"PPO checkpoint {path} cannot be read ({type(exc).__name__}); delete it or rerun "
+                            f"with --force to train from the start") from None
+
+
+@torch.no_grad()
+def evaluate_policy(make_env: Callable[[int, int], SuiteBatchEnv], nets: PolicyNetworks, episodes: int,
+                    num_envs: int, seed: int) -> np.ndarray:
+    """Returns of `episodes` test episodes with the policy's deterministic (mean) action, on environments
+    seeded apart from training."""
+    eval_env = make_env(num_envs, seed + 1_000_003)
+    steps = eval_env.config.agent_steps
+    returns: list[float] = []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        while len(returns) < episodes:
+            rollout = eval_env.rollout(steps, nets.policy, break_when_any_done=False)
+            returns.extend(rollout.get(("next", "reward")).sum(dim=(1, 2)).double().tolist())
+    return np.asarray(returns[:episodes])

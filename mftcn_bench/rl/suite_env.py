@@ -1,0 +1,178 @@
+"""Many dm_control suite environments stepped together in one process, as one batched torchrl environment.
+
+torchrl's SerialEnv / ParallelEnv collect 400-850 frames/s here (one Python env object and a tensordict
+round trip per instance per step); stepping a list of dm_control physics instances inside one
+`EnvBase` with a batch dimension removes that overhead. Every instance runs episodes of the same fixed
+length (the suite's cartpole and cheetah never terminate early), so all of them start and end episodes
+together and a reset always resets the whole batch.
+
+Each agent step applies the action for `action_repeat` physics steps and sums the rewards (returns stay
+on the suite's 1000-step scale). The policy's input is an observer's output (`observers.py`): the
+frozen encoder's embedding of the clip ending at the current frame. Frames are rendered only when the
+encoder reads pixels, and then only the physics steps a clip can reach: the last min(lookback,
+action_repeat) of each repeat, so a clip sees consecutive simulator frames exactly as in the encoder's
+training data. For an encoder trained jointly with the policy (pixels-cnn) the environment emits the raw
+clip ("pixels", uint8 [E, n, 3, H, W]) instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from mftcn_bench.data.clips import clip_offsets
+from mftcn_bench.errors import SpecError
+from mftcn_bench.rendering import MultiViewRenderer, ensure_gl
+from mftcn_bench.rl.observers import Observer
+
+
+@dataclass(frozen=True)
+class SuiteConfig:
+    """Which suite task, how it is seen and how it is stepped: the task spec's `[env]` table, with the
+    image size and render settings of its `[dataset]` (frames look like the encoder's training data)."""
+
+    domain: str
+    task: str
+    camera: str
+    height: int
+    width: int
+    episode_length: int  # physics steps (frames) per episode
+    action_repeat: int
+    shadowsize: int = 16
+    offsamples: int = 0
+
+    def __post_init__(self) -> None:
+        if self.action_repeat < 1 or self.episode_length % self.action_repeat:
+            raise SpecError(f"[env] episode_length ({self.episode_length}) must be a positive multiple of "
+                            f"action_repeat ({self.action_repeat})")
+
+    @property
+    def agent_steps(self) -> int:
+        return self.episode_length // self.action_repeat
+
+
+def physics_state(physics, domain: str) -> np.ndarray:
+    """The true state recorded with each frame: cartpole (x, theta, x_dot, theta_dot); other domains
+    the suite's observation of positions and velocities without the horizontal root position (which
+    is not observable from a tracking camera and not part of the suite's observation)."""
+    qpos, qvel = physics.data.qpos, physics.data.qvel
+    if domain == "cartpole":
+        return np.concatenate([qpos, qvel])
+    return np.concatenate([qpos[1:], qvel])
+
+
+@dataclass(frozen=True)
+class PixelClip:
+    """Emit the raw clip of `frames` frames at `stride` (for encoders trained with the policy)."""
+
+    frames: int
+    stride: int
+
+
+class SuiteBatchEnv(EnvBase):
+    """`num_envs` instances of a suite task with a batch dimension; observation = observer embedding."""
+
+    def __init__(self, config: SuiteConfig, num_envs: int, seed: int,
+                 observer: Observer | None, embedding_dim: int, observer_uses_pixels: bool,
+                 lookback: int = 1, pixel_clip: PixelClip | None = None) -> None:
+        super().__init__(batch_size=torch.Size([num_envs]))
+        ensure_gl()
+        from dm_control import suite
+
+        if (observer is None) == (pixel_clip is None):
+            raise ValueError("give exactly one of observer and pixel_clip")
+        self.config, self.num_envs = config, num_envs
+        self.observer, self.pixel_clip = observer, pixel_clip
+        self.seed = seed
+        self.episode_index = 0  # episodes started so far by each instance; seeds the next initial states
+        self._envs = [suite.load(config.domain, config.task, task_kwargs={"random": seed}) for _ in range(num_envs)]
+        self._renders = observer_uses_pixels or pixel_clip is not None
+        self._renderers = [MultiViewRenderer(env.physics, [config.camera], config.height, config.width,
+                                             config.shadowsize, config.offsamples)
+                           for env in self._envs] if self._renders else []
+        if pixel_clip is not None:
+            lookback = (pixel_clip.frames - 1) * pixel_clip.stride + 1
+            self._clip_offsets = clip_offsets(pixel_clip.frames, pixel_clip.stride)
+            self._window = np.zeros((num_envs, lookback, 3, config.height, config.width), dtype=np.uint8)
+        self.lookback = lookback
+        self.render_steps = min(lookback, config.action_repeat) if self._renders else 0
+        self._slot = -1
+        self._t = 0
+        action_dim = int(self._envs[0].action_spec().shape[0])
+        obs_spec = (Unbounded(shape=(num_envs, embedding_dim), dtype=torch.float32) if pixel_clip is None else
+                    Bounded(0, 255, shape=(num_envs, pixel_clip.frames, 3, config.height, config.width),
+                            dtype=torch.uint8))
+        self._obs_key = "observation" if pixel_clip is None else "pixels"
+        self.observation_spec = Composite({self._obs_key: obs_spec}, shape=(num_envs,))
+        self.action_spec = Bounded(-1.0, 1.0, shape=(num_envs, action_dim), dtype=torch.float32)
+        self.reward_spec = Unbounded(shape=(num_envs, 1), dtype=torch.float32)
+        flag = Categorical(2, shape=(num_envs, 1), dtype=torch.bool)
+        self.done_spec = Composite(done=flag, terminated=flag.clone(), truncated=flag.clone(), shape=(num_envs,))
+
+    # -- observation of the current frame -------------------------------------------------------------
+    def _frames(self) -> np.ndarray | None:
+        if not self._renders:
+            return None
+        return np.stack([renderer.render()[0] for renderer in self._renderers])
+
+    def _state(self) -> np.ndarray:
+        return np.stack([physics_state(env.physics, self.config.domain) for env in self._envs])
+
+    def _observe(self, start: bool) -> torch.Tensor:
+        frames = self._frames()
+        if self.pixel_clip is not None:
+            chw = frames.transpose(0, 3, 1, 2)
+            self._slot = (self._slot + 1) % self.lookback
+            if start:
+                self._window[:] = chw[:, None]
+            else:
+                self._window[:, self._slot] = chw
+            index = (self._slot + self._clip_offsets) % self.lookback
+            return torch.from_numpy(self._window[:, index].copy())
+        starts = np.full(self.num_envs, start)
+        return torch.from_numpy(self.observer.push(frames, starts, self._state()))
+
+    # -- torchrl EnvBase ------------------------------------------------------------------------------
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(-1)
+            if not bool(mask.all()):
+                raise RuntimeError("SuiteBatchEnv resets all its environments together (fixed-length episodes)")
+        for i, env in enumerate(self._envs):  # initial state from (seed, instance, episode number)
+            env.task._random = np.random.RandomState(np.random.SeedSequence([self.seed, i, self.episode_index])
+                                                     .generate_state(1)[0])
+            env.reset()
+        self.episode_index += 1
+        self._t = 0
+        obs = self._observe(start=True)
+        done = torch.zeros((self.num_envs, 1), dtype=torch.bool)
+        return TensorDict({self._obs_key: obs, "done": done, "terminated": done.clone(),
+                           "truncated": done.clone()}, batch_size=self.batch_size)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = np.clip(tensordict.get("action").detach().cpu().numpy().astype(np.float64), -1.0, 1.0)
+        repeat = self.config.action_repeat
+        reward = np.zeros(self.num_envs, dtype=np.float64)
+        obs = None
+        for r in range(repeat):
+            for i, env in enumerate(self._envs):
+                reward[i] += env.step(action[i]).reward or 0.0
+            if r >= repeat - self.render_steps or (r == repeat - 1):
+                obs = self._observe(start=False)
+        self._t += 1
+        truncated = torch.full((self.num_envs, 1), self._t >= self.config.agent_steps, dtype=torch.bool)
+        return TensorDict({self._obs_key: obs, "reward": torch.from_numpy(reward).float().unsqueeze(-1),
+                           "done": truncated.clone(), "terminated": torch.zeros_like(truncated),
+                           "truncated": truncated}, batch_size=self.batch_size)
+
+    def _set_seed(self, seed: int | None) -> None:
+        """Instances are seeded at construction (from the run's seed); torchrl's seeding is not used."""
+
+
+EnvFactory = Callable[[int, int], SuiteBatchEnv]  # (num_envs, seed) -> environment

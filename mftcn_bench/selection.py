@@ -1,0 +1,78 @@
+"""Which stored runs a table, leaderboard or plot counts.
+
+A run counts when it was made with today's spec files for its encoder, task and preset, with at most the
+embedding size overridden (the paper's tables vary it): runs of older specs or other overrides are never
+mixed in. Of several such runs of one (encoder, task, preset, embedding size, seed), the latest counts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from mftcn_bench import registry
+from mftcn_bench.errors import BenchError
+from mftcn_bench.specs import resolve_config
+from mftcn_bench.store import RunRecord
+
+Accept = Callable[[RunRecord], bool]
+
+
+def matches_current_specs(record: RunRecord) -> bool:
+    """Whether a stored run used today's spec files for its encoder, task and preset, with at most the
+    embedding size overridden."""
+    try:
+        encoder, task = registry.get("encoders", record.encoder), registry.get("tasks", record.task)
+        _, config = resolve_config(encoder.spec, task.spec, record.preset,
+                                   [("encoder.embedding_dim", record.config["encoder"]["embedding_dim"])])
+        return config["encoder"] == record.config["encoder"] and config["task"] == record.config["task"]
+    except (BenchError, KeyError, TypeError):
+        return False
+
+
+def config_value(record: RunRecord, dotted: str) -> Any:
+    """A value of the run's resolved config by dotted key (`encoder.embedding_dim`); None if absent."""
+    node: Any = record.config
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def embedding_dim(record: RunRecord) -> int | None:
+    return config_value(record, "encoder.embedding_dim")
+
+
+def variant_key(record: RunRecord) -> tuple[str, str, str, Any]:
+    """(encoder, task, preset, embedding size): runs of one variant differ only by seed."""
+    return record.encoder, record.task, record.preset, embedding_dim(record)
+
+
+def counted_runs(records: Iterable[RunRecord], accept: Accept = matches_current_specs) -> list[RunRecord]:
+    """The accepted runs, the latest per (variant, seed), ordered by variant then seed."""
+    latest: dict[tuple, RunRecord] = {}
+    for record in records:
+        if not accept(record):
+            continue
+        key = (*variant_key(record), record.seed)
+        kept = latest.get(key)
+        if kept is None or (record.created_at, record.run_id) > (kept.created_at, kept.run_id):
+            latest[key] = record
+    return [latest[k] for k in sorted(latest, key=lambda k: tuple(str(p) for p in k[:4]) + (k[4],))]
+
+
+def default_embedding_dim(encoder: str) -> int | None:
+    """The embedding size in the encoder's spec file (None for an encoder not installed)."""
+    try:
+        return registry.get("encoders", encoder).spec.embedding_dim
+    except BenchError:
+        return None
+
+
+def variant_label(record: RunRecord) -> str:
+    """The encoder's name, with the embedding size when it was overridden."""
+    dim, default = embedding_dim(record), default_embedding_dim(record.encoder)
+    if dim is not None and default is not None and dim != default:
+        return f"{record.encoder} (embedding {dim})"
+    return record.encoder

@@ -1,0 +1,187 @@
+"""Control tasks: PPO on a frozen encoder's embedding (swingup, swingup-160, swingup-moving, cheetah).
+
+The encoder is trained on the task's multi-view dataset (cartpole: random actions from random initial
+states, the same data as cartpole-probe, so a trained encoder is shared; cheetah: rollouts of an expert
+PPO policy trained on true state). A policy then learns from the embedding of one camera's frames only,
+with PPO (`mftcn_bench.rl.ppo`), and is tested on `eval_episodes` episodes of the full 1000 simulator
+steps with its mean action: the result is the mean and standard deviation of those returns, on the
+suite's 1000-step scale whatever the action repeat. The learning curve (training return against frames
+and wall time) is stored with the result and drawn to `curve.png` in the run's folder.
+
+pixels-cnn is the exception that proves the rule: its CNN has no training signal of its own and is
+trained by the PPO losses together with the policy (the environment emits raw clips for it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from mftcn_bench.data.cartpole import collect_episode
+from mftcn_bench.data.dataset import Collector, MultiViewDataset
+from mftcn_bench.data.expert_demos import ExpertDemoCollector
+from mftcn_bench.encoders.base import Encoder
+from mftcn_bench.errors import SpecError
+from mftcn_bench.home import BenchHome
+from mftcn_bench.rl.expert import ensure_expert, expert_key
+from mftcn_bench.rl.observers import make_observer, uses_pixels
+from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
+from mftcn_bench.rl.suite_env import PixelClip, SuiteBatchEnv, SuiteConfig
+from mftcn_bench.tasks.base import TaskResult
+
+
+class ClipTrunk(nn.Module):
+    """A clip network (uint8 [B, n, 3, H, W] -> [B, D]) applied over any leading batch dimensions."""
+
+    def __init__(self, net: nn.Module, out_features: int) -> None:
+        super().__init__()
+        self.net, self.out_features = net, out_features
+
+    def forward(self, clips: torch.Tensor) -> torch.Tensor:
+        lead = clips.shape[:-4]
+        out = self.net(clips.reshape(-1, *clips.shape[-4:]))
+        return out.reshape(*lead, out.shape[-1])
+
+
+def _table(cls, task: str, name: str, table: Mapping[str, Any]):
+    try:
+        return cls(**table)
+    except TypeError as exc:
+        raise SpecError(f"task {task!r}: bad [{name}] table ({exc})") from None
+
+
+class ControlTask:
+    """PPO on the frozen embedding of one camera; metrics: return mean and std over test episodes."""
+
+    def __init__(self, config: Mapping[str, Any], seed: int) -> None:
+        self.config, self.seed = config, seed
+        dataset = config["dataset"]
+        seen_as = {"height": dataset["height"], "width": dataset["width"], **dataset["render"]}
+        self.env_config = _table(SuiteConfig, config["name"], "env", {**config["env"], **seen_as})
+        self.ppo = _table(PPOConfig, config["name"], "ppo", config["ppo"])
+        if self.env_config.camera not in dataset["cameras"]:
+            raise SpecError(f"task {config['name']!r}: [env] camera {self.env_config.camera!r} is not one of the "
+                            f"dataset's cameras {', '.join(dataset['cameras'])}")
+
+    @property
+    def dataset_config(self) -> Mapping[str, Any]:
+        return self.config["dataset"]
+
+    @property
+    def collector(self) -> Collector:
+        return collect_episode
+
+    def _env_factory(self, encoder: Encoder):
+        info = encoder.info
+        joint = bool(getattr(encoder, "trains_with_policy", False))
+
+        def make_env(num_envs: int, seed: int) -> SuiteBatchEnv:
+            if joint:
+                return SuiteBatchEnv(self.env_config, num_envs, seed, None, info.embedding_dim, True,
+                                     pixel_clip=PixelClip(info.frames, info.stride))
+            return SuiteBatchEnv(self.env_config, num_envs, seed, make_observer(encoder, num_envs),
+                                 info.embedding_dim, uses_pixels(encoder), lookback=info.lookback)
+
+        trunk = ClipTrunk(encoder.net, info.embedding_dim) if joint else None
+        return make_env, trunk
+
+    def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path) -> TaskResult:
+        from tqdm import tqdm
+
+        make_env, trunk = self._env_factory(encoder)
+        bar = tqdm(desc=f"ppo {self.config['name']}", unit="batch", disable=None, leave=False)
+
+        def progress(batch: int, total: int, stats: dict[str, float]) -> None:
+            bar.total, bar.n = total, batch
+            bar.set_postfix({k: f"{v:.3g}" for k, v in stats.items()}, refresh=False)
+            bar.refresh()
+
+        try:
+            nets, state = train_ppo(make_env, self.ppo, self.seed, workdir, progress, trunk)
+        finally:
+            bar.close()
+        returns = evaluate_policy(make_env, nets, self.ppo.eval_episodes,
+                                  min(self.ppo.num_envs, self.ppo.eval_episodes), self.seed)
+        curves = {"train": {"frames": state.curve_frames, "wall_s": state.curve_wall_s,
+                            "return": state.curve_return}}
+        plot_curve(curves["train"], workdir / "curve.png", f"{encoder.info.name} on {self.config['name']}")
+        metrics = {"return_mean": float(returns.mean()), "return_std": float(returns.std()),
+                   "episodes": float(len(returns)), "frames": float(state.frames),
+                   "train_wall_s": float(state.wall_s),
+                   "train_fps": float(state.frames / state.wall_s) if state.wall_s else None}
+        notes = [f"PPO: {state.frames:,} frames in {state.wall_s / 60:.1f} min "
+                 f"(action repeat {self.env_config.action_repeat}, {self.ppo.num_envs} environments); "
+                 f"test: {len(returns)} episodes of {self.env_config.episode_length} steps, mean action"]
+        return TaskResult(metrics, notes, curves)
+
+    def table(self, metrics: Mapping[str, Any]) -> list[dict[str, Any]]:
+        return [{"return (mean)": metrics["return_mean"], "return (std)": metrics["return_std"],
+                 "test episodes": int(metrics["episodes"]), "training frames": int(metrics["frames"])}]
+
+
+class ExpertDemoControlTask(ControlTask):
+    """A control task whose encoder learns from an expert's demonstrations only (cheetah).
+
+    The expert (PPO on true state, `[expert_ppo]`) is trained once and cached under the home's
+    `experts/`; the dataset records its episodes from every camera of `[dataset]`.
+    """
+
+    def __init__(self, config: Mapping[str, Any], seed: int) -> None:
+        super().__init__(config, seed)
+        self.expert_ppo = _table(PPOConfig, config["name"], "expert_ppo", config["expert_ppo"])
+        self.expert_seed = int(config["dataset"]["seed"])
+        self._expert_path: Path | None = None
+
+    @property
+    def dataset_config(self) -> Mapping[str, Any]:
+        # The expert's identity is part of the data's: another expert gives another dataset.
+        return {**self.config["dataset"], "expert": expert_key(self.env_config, self.expert_ppo, self.expert_seed)}
+
+    def prepare_artifacts(self, home: BenchHome, show_progress: bool = True) -> None:
+        """Train (or find) the expert before the dataset is collected from it."""
+        from tqdm import tqdm
+
+        bar = tqdm(desc=f"expert {self.env_config.domain}-{self.env_config.task}", unit="batch",
+                   disable=None if show_progress else True, leave=False)
+
+        def progress(batch: int, total: int, stats: dict[str, float]) -> None:
+            bar.total, bar.n = total, batch
+            bar.set_postfix({k: f"{v:.3g}" for k, v in stats.items()}, refresh=False)
+            bar.refresh()
+
+        try:
+            self._expert_path = ensure_expert(home.experts, self.env_config, self.expert_ppo, self.expert_seed,
+                                              progress)
+        finally:
+            bar.close()
+
+    @property
+    def collector(self) -> Collector:
+        if self._expert_path is None:
+            raise RuntimeError("prepare_artifacts(home) must run before the dataset is collected")
+        return ExpertDemoCollector(self._expert_path, self.env_config, self.expert_ppo)
+
+
+def plot_curve(curve: Mapping[str, list[float]], path: Path, title: str) -> None:
+    """Training return against frames and against wall time, side by side, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2), sharey=True)
+    axes[0].plot(np.asarray(curve["frames"]) / 1e6, curve["return"])
+    axes[0].set_xlabel("frames (millions)")
+    axes[0].set_ylabel("training return")
+    axes[1].plot(np.asarray(curve["wall_s"]) / 60, curve["return"])
+    axes[1].set_xlabel("wall time (min)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

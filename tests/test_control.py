@@ -1,0 +1,42 @@
+"""End-to-end smoke runs of the control tasks through the CLI: every task with the four reference rows."""
+
+import json
+
+import pytest
+
+from mftcn_bench.cli import main
+from mftcn_bench.store import ResultStore
+
+ENCODERS = ["true-state", "random-state", "pixels-cnn", "mftcn5"]
+
+
+@pytest.fixture(scope="module")
+def control_home(tmp_path_factory):
+    return tmp_path_factory.mktemp("control-home")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", ["swingup", "swingup-moving", "cheetah"])
+@pytest.mark.parametrize("encoder", ENCODERS)
+def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encoder, capsys):
+    code = main(["run", "--encoder", encoder, "--task", task, "--preset", "smoke", "--no-progress",
+                 "--home", str(control_home)])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "return (mean)" in out
+    [record] = ResultStore(control_home / "results.sqlite").query(task=task, encoder=encoder)
+    metrics = record.metrics
+    assert metrics["episodes"] == 2 and metrics["frames"] == 320
+    assert 0.0 <= metrics["return_mean"] <= 80.0  # smoke episodes of <= 80 steps, reward <= 1 a step
+    curve = record.curves["train"]
+    assert curve["frames"][-1] == 320.0 and sorted(curve["frames"]) == curve["frames"]
+    assert len(curve["return"]) == len(curve["wall_s"]) == len(curve["frames"]) >= 2
+    run_dir = control_home / "runs" / record.run_id
+    assert (run_dir / "curve.png").stat().st_size > 0
+    assert json.loads((run_dir / "result.json").read_text())["curves"] == record.curves
+
+
+@pytest.mark.slow
+def test_cheetah_expert_is_trained_once_for_all_rows(control_home):
+    experts = list((control_home / "experts").glob("cheetah-run-*/expert.pt"))
+    assert len(experts) == 1

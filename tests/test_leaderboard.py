@@ -1,0 +1,62 @@
+"""Leaderboards: ranking from the task spec, a pure function of the stored results."""
+
+import pytest
+
+from mftcn_bench import registry
+from mftcn_bench.leaderboard import Ranking, entries, ranking, render_boards, write_boards
+from mftcn_bench.specs import TaskSpec, resolve_config
+from tests.records import make_record, probe_config
+
+RESULTS = [("true-state", 0, 0.001, "2026-03-01T10:00:00+00:00"), ("true-state", 1, 0.003, "2026-03-04T10:00:00+00:00"),
+           ("pve", 0, 2.7, "2026-03-02T10:00:00+00:00"), ("random-state", 0, 4.4, "2026-03-03T10:00:00+00:00")]
+
+
+def records():
+    return [make_record(e, "cartpole-probe", s, {"average": v}, config=probe_config(e), created_at=at)
+            for e, s, v, at in RESULTS]
+
+
+def test_the_leaderboard_table_is_read_from_the_spec_and_is_not_part_of_a_run_config():
+    spec = registry.get("tasks", "cartpole-probe").spec
+    assert ranking("cartpole-probe") == Ranking("average", False, "Average MSE")
+    _, config = resolve_config(registry.get("encoders", "mftcn4").spec, spec, "quick")
+    assert "leaderboard" not in config["task"]  # adding it changed no run id
+    assert ranking("no-such-task") is None
+    with pytest.raises(Exception, match="leaderboard"):
+        TaskSpec.from_dict("t", {"description": "d", "default_preset": "p", "presets": {"p": {}},
+                                 "leaderboard": {"metric": 3}})
+
+
+def test_board_ranks_by_the_metric_with_mean_std_seeds_version_and_latest_date():
+    text = render_boards(records())["cartpole-probe.md"]
+    lines = [line for line in text.splitlines() if line.startswith("| ") and "rank" not in line]
+    assert [line.split("|")[2].strip() for line in lines] == ["true-state", "pve", "random-state"]
+    first = [c.strip() for c in lines[0].split("|")[1:-1]]
+    assert first == ["1", "true-state", "0.0020 ± 0.0014", "-", "2", "quick", "0.1.0", "2026-03-04"]
+    assert "## preset `quick`" in text and "ddof=1" in text
+
+
+def test_higher_is_better_reverses_the_order():
+    runs = [make_record(e, "t", 0, {"m": v}) for e, v in (("a", 1.0), ("b", 3.0), ("c", 2.0))]
+    assert [e.encoder for e in entries(runs, Ranking("m", True, "M"))] == ["b", "c", "a"]
+    assert [e.encoder for e in entries(runs, Ranking("m", False, "M"))] == ["a", "c", "b"]
+
+
+def test_same_results_same_bytes_whatever_the_order(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    write_boards(records(), a)
+    write_boards(list(reversed(records())), b)
+    names = sorted(p.name for p in a.iterdir())
+    assert names == ["README.md", "cartpole-probe.md"]
+    assert all((a / n).read_bytes() == (b / n).read_bytes() for n in names)
+    index = (a / "README.md").read_text()
+    assert "[cartpole-probe](cartpole-probe.md)" in index and "true-state: 0.0020 ± 0.0014" in index
+
+
+def test_iqm_column_from_three_seeds_and_tasks_without_a_board_are_named():
+    runs = [make_record("pve", "cartpole-probe", s, {"average": v}, config=probe_config("pve"))
+            for s, v in enumerate((1.0, 2.0, 3.0))]
+    runs.append(make_record("pve", "unknown-task", 0, {"x": 1.0}))
+    files = render_boards(runs, accept=lambda r: True)
+    assert "| 2.0000 [" in files["cartpole-probe.md"]
+    assert "without a board" in files["README.md"] and "unknown-task" in files["README.md"]

@@ -1,0 +1,88 @@
+"""PPO on the batched environment: reproducible from the seed, and a killed run resumes exactly."""
+
+import pytest
+import torch
+
+from mftcn_bench.rl.expert import ExpertPolicy, ensure_expert, state_env_factory
+from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
+from mftcn_bench.rl.suite_env import SuiteConfig
+
+ENV = SuiteConfig("cartpole", "swingup", "fixed", 24, 32, episode_length=40, action_repeat=4)
+PPO = PPOConfig(frames=480, num_envs=2, episodes_per_batch=1, epochs=2, minibatch_size=8, lr=3e-4, anneal_lr=True,
+                gamma=0.99, lmbda=0.95, clip_epsilon=0.2, clip_value=0.2, entropy_coeff=0.01, critic_coeff=0.5,
+                max_grad_norm=0.5, reward_scale=0.1, hidden=[16, 16], eval_episodes=3, checkpoint_every=1)
+
+
+class Stop(Exception):
+    pass
+
+
+def _train(workdir, stop_after=None):
+    def progress(batch, total, stats):
+        if batch == stop_after:
+            raise Stop
+    return train_ppo(state_env_factory(ENV), PPO, 3, workdir, progress)
+
+
+def _params(nets):
+    return torch.cat([p.detach().flatten() for p in nets.parameters()])
+
+
+def test_same_seed_same_policy_and_curve(tmp_path):
+    nets_a, state_a = _train(tmp_path / "a")
+    nets_b, state_b = _train(tmp_path / "b")
+    assert state_a.batch == 6 and state_a.frames == 480  # 6 batches of 2 envs x 10 steps x 4 repeats
+    assert state_a.curve_return == state_b.curve_return
+    assert torch.equal(_params(nets_a), _params(nets_b))
+
+
+def test_killed_run_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
+    nets_a, state_a = _train(tmp_path / "a")
+    with pytest.raises(Stop):
+        _train(tmp_path / "b", stop_after=3)
+    assert (tmp_path / "b" / "ppo_checkpoint.pt").exists()
+    nets_b, state_b = _train(tmp_path / "b")
+    assert state_b.curve_return == state_a.curve_return and state_b.batch == 6
+    assert torch.equal(_params(nets_a), _params(nets_b))
+    make_env = state_env_factory(ENV)
+    returns_a = evaluate_policy(make_env, nets_a, 3, 2, seed=3)
+    assert len(returns_a) == 3
+    assert returns_a.tolist() == evaluate_policy(make_env, nets_b, 3, 2, seed=3).tolist()
+
+
+def test_truncated_checkpoint_is_refused_with_one_line(tmp_path):
+    from mftcn_bench.errors import TrainingError
+
+    with pytest.raises(Stop):
+        _train(tmp_path, stop_after=1)
+    path = tmp_path / "ppo_checkpoint.pt"
+    path.write_bytes(path.read_bytes()[:100])
+    with pytest.raises(TrainingError, match="cannot be read"):
+        _train(tmp_path)
+
+
+def test_expert_is_trained_once_and_acts_like_the_trained_policy(tmp_path):
+    path = ensure_expert(tmp_path, ENV, PPO, seed=1)
+    stamp = path.stat().st_mtime_ns
+    assert ensure_expert(tmp_path, ENV, PPO, seed=1) == path and path.stat().st_mtime_ns == stamp
+    expert = ExpertPolicy(path, ENV, PPO)
+    action = expert.act([0.1, 0.2, 0.0, -0.3])
+    assert action.shape == (1,) and -1.0 <= action[0] <= 1.0
+    assert expert.act([0.1, 0.2, 0.0, -0.3]).tolist() == action.tolist()  # the mean action, no sampling
+
+
+def test_running_normalizer_matches_numpy_over_all_batches():
+    import numpy as np
+
+    from mftcn_bench.rl.ppo import RunningNormalizer
+
+    rng = np.random.default_rng(0)
+    batches = [rng.normal(3.0, 2.0, size=(n, 3)) for n in (5, 17, 8)]
+    norm = RunningNormalizer(3)
+    for b in batches:
+        norm.update(torch.from_numpy(b).float())
+    every = np.concatenate(batches).astype(np.float32).astype(np.float64)
+    assert np.allclose(norm.mean.numpy(), every.mean(0)) and np.allclose(norm.var.numpy(), every.var(0))
+    x = torch.tensor([[3.0, 3.0, 1e6]])
+    expected = (x.double() - every.mean(0)) / np.sqrt(every.var(0) + 1e-8)
+    assert torch.allclose(norm(x).double()[0, :2], expected[0, :2], atol=1e-5) and norm(x)[0, 2] == 10.0

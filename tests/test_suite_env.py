@@ -1,0 +1,71 @@
+"""The batched suite environment: torchrl specs, rewards summed over the action repeat, fixed-length
+episodes, reproducible initial states, and rendering only the frames a clip can reach."""
+
+import numpy as np
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from mftcn_bench.rl.observers import StateObserver
+from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig
+
+CONFIG = SuiteConfig("cartpole", "swingup", "fixed", 24, 32, episode_length=40, action_repeat=4)
+
+
+class CountingObserver:
+    """Records how many frames it was pushed and returns the state."""
+
+    def __init__(self):
+        self.pushes = []
+
+    def push(self, frames, episode_start, state):
+        self.pushes.append((None if frames is None else frames.shape, bool(episode_start.all())))
+        return state.astype(np.float32)
+
+
+def test_specs_and_fixed_length_episodes():
+    env = SuiteBatchEnv(CONFIG, 3, seed=0, observer=StateObserver(), embedding_dim=4, observer_uses_pixels=False)
+    check_env_specs(env)
+    rollout = env.rollout(CONFIG.agent_steps, break_when_any_done=False)
+    done = rollout.get(("next", "done")).squeeze(-1)
+    assert rollout.batch_size == torch.Size([3, 10])
+    assert not done[:, :-1].any() and done[:, -1].all()
+
+
+def test_reward_is_the_sum_over_the_action_repeat_and_states_are_reproducible():
+    from dm_control import suite
+
+    env = SuiteBatchEnv(CONFIG, 2, seed=5, observer=StateObserver(), embedding_dim=4, observer_uses_pixels=False)
+    td = env.reset()
+    first_obs = td.get("observation").clone()
+    physics = [e.physics.get_state().copy() for e in env._envs]
+    action = torch.tensor([[0.5], [-0.25]])
+    td.set("action", action)
+    reward = env.step(td).get(("next", "reward")).squeeze(-1)
+    for i in range(2):  # the same physics stepped by hand
+        plain = suite.load("cartpole", "swingup")
+        plain.reset()
+        with plain.physics.reset_context():
+            plain.physics.set_state(physics[i])
+        expected = sum(plain.step(action[i].numpy().astype(np.float64)).reward for _ in range(CONFIG.action_repeat))
+        assert abs(float(reward[i]) - expected) < 1e-5
+    again = SuiteBatchEnv(CONFIG, 2, seed=5, observer=StateObserver(), embedding_dim=4, observer_uses_pixels=False)
+    assert torch.equal(again.reset().get("observation"), first_obs)  # same seed, same initial states
+    assert not torch.equal(again.reset().get("observation"), first_obs)  # the next episode differs
+
+
+def test_renders_only_the_frames_a_clip_can_reach():
+    observer = CountingObserver()
+    env = SuiteBatchEnv(CONFIG, 2, seed=0, observer=observer, embedding_dim=4, observer_uses_pixels=True,
+                        lookback=3)
+    td = env.reset()
+    td.set("action", torch.zeros(2, 1))
+    env.step(td)
+    # one frame at the reset, then the last min(lookback 3, repeat 4) = 3 sub-steps of the repeat
+    assert [p[0] for p in observer.pushes] == [(2, 24, 32, 3)] * 4
+    assert [p[1] for p in observer.pushes] == [True, False, False, False]
+    blind = CountingObserver()
+    env = SuiteBatchEnv(CONFIG, 2, seed=0, observer=blind, embedding_dim=4, observer_uses_pixels=False, lookback=3)
+    td = env.reset()
+    td.set("action", torch.zeros(2, 1))
+    env.step(td)
+    assert [p[0] for p in blind.pushes] == [None, None]  # no rendering; one observation a step
