@@ -60,3 +60,11 @@ def test_reembed(benchmark, lookback):
     benchmark.group = f"lookback {lookback:2d}"
     out = benchmark(enc.embed, clips)
     assert out.shape == (ENVS, 32)
+
+
+def test_streaming_cost_ratio(record_rows, sizes):
+    """Lookback 29 against lookback 1, alternated in one run (`mftcn_bench.bench.bench_streaming`; target
+    <= 1.5x the cost)."""
+    from mftcn_bench import bench
+
+    record_rows(bench.bench_streaming, sizes)

@@ -1,6 +1,6 @@
-"""The `mftcn-bench` command line: run, list, data, sweep, report, leaderboard, results, plot.
+"""The `mftcn-bench` command line: run, list, data, sweep, report, leaderboard, results, plot, bench.
 
-The results commands (sweep onwards) live in `cli_results`.
+The results commands (sweep to plot) live in `cli_results`; `bench` lives in `bench`.
 
 Bad input ends with one line on stderr naming what was wrong and what is allowed, and exit code 2.
 """
@@ -98,6 +98,10 @@ def build_parser() -> argparse.ArgumentParser:
     from mftcn_bench.cli_results import add_commands
 
     add_commands(commands, _common, _Parser)  # sweep, report, leaderboard, results, plot
+
+    from mftcn_bench.bench import add_command as add_bench
+
+    add_bench(commands)  # bench
     return parser
 
 

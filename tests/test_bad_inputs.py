@@ -15,6 +15,7 @@ import contextlib
 import os
 import shutil
 import subprocess
+import sys
 import textwrap
 import uuid
 from collections.abc import Iterator
@@ -32,7 +33,8 @@ from tests.synthetic import synthetic_collector
 TINY_TASK = ["--preset", "smoke", "--no-progress",
              "--set", "task.dataset.episode_length=30", "--set", "task.dataset.train_episodes=3",
              "--set", "task.dataset.test_episodes=1", "--set", "task.dataset.height=16",
-             "--set", "task.dataset.width=24", "--set", "task.probe.epochs=3", "--set", "task.probe.hidden=[8]"]
+             "--set", "task.dataset.width=24", "--set", "task.probe.epochs=3", "--set", "task.probe.hidden=[8]",
+             "--set", "task.probe.batch_size=16"]
 # A tiny mfTCN: 8-channel convolutions, 2 training steps on 4 time steps from 2 episodes.
 TINY_MFTCN = ["--encoder", "mftcn1", *TINY_TASK,
               "--set", "encoder.model.channels=[8, 8, 8, 8]", "--set", "encoder.model.temporal_channels=8",
@@ -70,8 +72,8 @@ def _complete_dataset_part(home: Path, rel: str) -> bool:
     if len(parts) == 1:
         return True
     folder = home / "datasets" / parts[1]
-    return folder.is_dir() and (folder / "manifest.json").exists() and not (folder / "progress.json").exists() \
-        and not parts[-1].startswith(".")
+    complete = (folder / "manifest.json").exists() and not (folder / "progress.json").exists()
+    return complete and not parts[-1].startswith(".")
 
 
 def assert_nothing_written(home: Path, before: dict[str, tuple[int, int]], rows_before: int = 0,
@@ -518,17 +520,35 @@ def test_spec_file_with_code_is_only_data(capsys, tmp_path, monkeypatch):
     assert not marker.exists()
 
 
-# ------------------------------------------------------------------------- code being written by others
+# -------------------------------------------------------------------------------------- sweeps, real data
 
 
-def test_ray_address_that_does_not_answer(capsys, tmp_path):
-    pytest.importorskip("mftcn_bench.sweep", reason="mftcn_bench/sweep.py (sweeps) is not written yet")
-    pytest.skip("sweep exists now: write this case against its CLI")
+def test_ray_address_that_does_not_answer(tmp_path):
+    """In a subprocess: a Ray instance another test left running in this process would be used instead."""
+    pytest.importorskip("ray")
+    home = tmp_path / "home"
+    proc = subprocess.run([sys.executable, "-m", "mftcn_bench.cli", "sweep", "--encoders", "random-state",
+                           "--tasks", "cartpole-probe", "--preset", "smoke", "--executor", "ray",
+                           "--address", "ray://127.0.0.1:1", "--home", str(home)],
+                          capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)})
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr[-2000:]
+    assert lines[0].startswith("mftcn-bench: error: Ray cluster at ray://127.0.0.1:1 does not answer (")
+    assert "check the address and that the cluster is up" in lines[0]
+    assert_nothing_written(home, {})
 
 
 def test_real_pouring_folder_in_the_wrong_layout(capsys, tmp_path):
-    pytest.importorskip("mftcn_bench.data.pouring_real", reason="mftcn_bench/data/pouring_real.py is not written yet")
-    pytest.skip("pouring_real exists now: write this case against its CLI")
+    """The Multiview Pouring release unpacked one level too high or only its videos: named, before any work."""
+    real = tmp_path / "pouring-release"
+    (real / "videos" / "train").mkdir(parents=True)
+    (real / "videos" / "train" / "cup_real_view0.mov").write_bytes(b"not read")
+    check_case(capsys, tmp_path, ["run", "--encoder", "random-state", "--task", "pouring", "--preset", "smoke",
+                                  "--no-progress", "--set", "task.dataset.source=real",
+                                  "--set", f"task.dataset.real_path={real}"],
+               f"real pouring data in {real}: tfrecords/train/ is missing",
+               "expected the Multiview Pouring layout tfrecords/{train,val,test}/ and labels/{val,test}/")
 
 
 # ---------------------------------------------------------------------------------------------- safe loading

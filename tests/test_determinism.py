@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 
 from mftcn_bench.cli import main
@@ -22,6 +23,8 @@ MFTCN = ["--encoder", "mftcn1", *TASK, "--set", "encoder.train.steps=6", "--set"
          "--set", "encoder.train.batch_timesteps=4", "--set", "encoder.train.episodes_per_batch=2",
          "--set", "encoder.train.alpha=4", "--set", "encoder.train.episode_pool=3"]
 RANDOM = ["--encoder", "random-state", *TASK]
+
+pytestmark = pytest.mark.slow  # renders its datasets
 
 
 def run(home: Path, args: list[str], seed: int = 0) -> RunRecord:

@@ -58,10 +58,12 @@ def cli(home: Path, *args: str, timeout: float = 300) -> subprocess.CompletedPro
     return proc
 
 
-def kill_when(home: Path, args: list[str], ready: Callable[[], bool], timeout: float = 120) -> None:
-    """Start `mftcn-bench *args`, SIGKILL it as soon as `ready()` holds. Fails if it finished first."""
+def kill_when(home: Path, args: list[str], ready: Callable[[], bool], timeout: float = 120,
+              group: bool = False) -> None:
+    """Start `mftcn-bench *args`, SIGKILL it as soon as `ready()` holds (with `group`, it and every process
+    it started, as when a machine goes down). Fails if it finished first."""
     proc = subprocess.Popen([sys.executable, "-m", "mftcn_bench.cli", *args], env=env_for(home),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=group)
     deadline = time.monotonic() + timeout
     try:
         while not ready():
@@ -69,7 +71,10 @@ def kill_when(home: Path, args: list[str], ready: Callable[[], bool], timeout: f
                                         f"{proc.stderr.read().decode()[-2000:]}"
             assert time.monotonic() < deadline, "the kill point was never reached"
             time.sleep(0.02)
-        os.kill(proc.pid, signal.SIGKILL)
+        if group:
+            os.killpg(proc.pid, signal.SIGKILL)
+        else:
+            os.kill(proc.pid, signal.SIGKILL)
     finally:
         proc.wait(timeout=30)
         proc.stderr.close()
@@ -88,17 +93,21 @@ def test_killed_dataset_collection_resumes_from_its_finished_chunks(tmp_path):
     args = ["run", "--encoder", "random-state", *SMALL]
 
     def some_chunks_done() -> bool:
-        progress = list(home.glob("datasets/*/progress.json"))
-        return bool(progress) and len(json.loads(progress[0].read_text() or "[]")) >= 2
+        try:
+            return any(len(json.loads(p.read_text())) >= 2 for p in home.glob("datasets/*/progress.json"))
+        except FileNotFoundError:  # collection just finished: too late, and the kill_when assertion says so
+            return False
 
     kill_when(home, args, some_chunks_done)
     (root,) = home.glob("datasets/cartpole-random-*")
     assert not (root / "manifest.json").exists()
     done = {c["file"]: c["sha256"] for c in json.loads((root / "progress.json").read_text())}
     kept = {name: (root / name).stat().st_mtime_ns for name in done}
+    missing = [f"ep{i:05d}.npz" for i in range(EPISODES) if f"ep{i:05d}.npz" not in done]
+    assert missing, "killed after the last chunk: no collection left to resume"
     # What a kill can leave besides: a chunk's temporary file, and a chunk written but not yet recorded.
-    (root / ".ep00004.npz.tmp-99999").write_bytes(b"half a chunk")
-    (root / "ep00005.npz").write_bytes(b"a chunk the progress file does not list")
+    (root / f".{missing[0]}.tmp-99999").write_bytes(b"half a chunk")
+    (root / missing[-1]).write_bytes(b"a chunk the progress file does not list")
 
     cli(home, *args)
     manifest = json.loads((root / "manifest.json").read_text())
@@ -116,14 +125,14 @@ def test_killed_dataset_collection_resumes_from_its_finished_chunks(tmp_path):
 
 def test_killed_encoder_training_resumes_from_its_checkpoint(tmp_path):
     home = tmp_path / "home"
-    args = ["run", "--encoder", "mftcn1", *SMALL, "--set", "encoder.train.steps=40",
+    args = ["run", "--encoder", "mftcn1", *SMALL, "--set", "encoder.train.steps=60",
             "--set", "encoder.train.checkpoint_every=5", "--set", "encoder.model.channels=[16, 16, 16, 16]",
             "--set", "encoder.model.temporal_channels=16", "--set", "encoder.train.batch_timesteps=8"]
     synthetic_dataset(home, args)
     kill_when(home, args, lambda: bool(list(home.glob("encoders/mftcn1-*/train_checkpoint.pt"))))
     (workdir,) = home.glob("encoders/mftcn1-*")
     step = int(torch.load(workdir / "train_checkpoint.pt", weights_only=True)["step"])
-    assert 5 <= step < 40 and not (workdir / "model.pt").exists()
+    assert 5 <= step < 60 and not (workdir / "model.pt").exists()
     assert not (home / "results.sqlite").exists() or not ResultStore(home / "results.sqlite").query()
     (workdir / ".train_checkpoint.pt.tmp-99999").write_bytes(b"half a checkpoint")
     dataset_mtimes = {p: p.stat().st_mtime_ns for p in home.glob("datasets/*/*")}
@@ -131,20 +140,55 @@ def test_killed_encoder_training_resumes_from_its_checkpoint(tmp_path):
     cli(home, *args)
     record = one_result(home)
     fit = record.config["fit"]
-    assert fit["fitted"] and fit["steps"] == 40
+    assert fit["fitted"] and fit["steps"] == 60
     assert fit["resumed_from_step"] >= step  # it went on from a checkpoint, not from step 0
     assert not (workdir / "train_checkpoint.pt").exists() and not list(workdir.glob(".*tmp*"))
     assert {p: p.stat().st_mtime_ns for p in home.glob("datasets/*/*")} == dataset_mtimes
 
 
-def test_killed_ppo_training_resumes():
-    pytest.importorskip("mftcn_bench.tasks.control", reason="the control task (swingup) is not written yet")
-    pytest.skip("mftcn_bench/tasks/control.py exists now: a kill point inside PPO training is still to write")
+def test_killed_ppo_training_resumes_from_its_checkpoint(tmp_path):
+    """swingup with the true state as the embedding (no encoder to train): 10 PPO batches, a checkpoint
+    after each; killed after the first, the rerun goes on from the last one."""
+    home = tmp_path / "home"
+    args = ["run", "--encoder", "true-state", "--task", "swingup", "--preset", "smoke", "--no-progress",
+            "--set", "task.dataset.train_episodes=1", "--set", "task.dataset.test_episodes=1",
+            "--set", "task.dataset.episode_length=10", "--set", "task.ppo.frames=1600"]
+    kill_when(home, args, lambda: bool(list(home.glob("runs/*/ppo_checkpoint.pt"))), timeout=240)
+    (checkpoint,) = home.glob("runs/*/ppo_checkpoint.pt")
+    state = torch.load(checkpoint, weights_only=True)["state"]
+    assert 1 <= state["batch"] < 10
+    assert not (home / "results.sqlite").exists() or not ResultStore(home / "results.sqlite").query()
+
+    cli(home, *args)
+    record = one_result(home)
+    curve = record.curves["train"]
+    assert curve["frames"] == [160.0 * (i + 1) for i in range(10)]
+    # The batches done before the kill come from the checkpoint, wall-clock readings included: resumed.
+    assert curve["wall_s"][:state["batch"]] == state["curve_wall_s"]
+    assert curve["return"][:state["batch"]] == state["curve_return"]
 
 
-def test_killed_sweep_resumes():
-    pytest.importorskip("mftcn_bench.sweep", reason="mftcn_bench/sweep.py is not written yet")
-    pytest.skip("mftcn_bench/sweep.py exists now: a kill point inside a sweep is still to write")
+def test_killed_sweep_resumes_and_keeps_finished_runs(tmp_path):
+    """The whole sweep (driver and its worker processes) is killed after some runs were stored; the rerun
+    reuses those and does the rest."""
+    home = tmp_path / "home"
+    args = ["sweep", "--encoders", "random-state", "--tasks", "cartpole-probe", "--seeds", "0-3", "--workers", "1",
+            *SMALL, "--set", "task.probe.epochs=40", "--set", "task.probe.hidden=[64, 64]"]
+
+    def some_runs_stored() -> bool:
+        database = home / "results.sqlite"
+        return database.exists() and len(ResultStore(database).query()) >= 1
+
+    kill_when(home, args, some_runs_stored, timeout=240, group=True)
+    stored = {r.run_id: r.created_at for r in ResultStore(home / "results.sqlite").query()}
+    assert 1 <= len(stored) < 4
+
+    out = cli(home, *args).stdout
+    assert f"{len(stored)} reused" in out and "0 failed" in out
+    store = ResultStore(home / "results.sqlite")
+    records = store.query()
+    assert len(records) == 4 and len({r.seed for r in records}) == 4 and store.integrity_ok()
+    assert {r.run_id: r.created_at for r in records if r.run_id in stored} == stored  # kept, not redone
 
 
 # ------------------------------------------------------------------------------------------- concurrency

@@ -54,6 +54,13 @@ def test_script_grasps_pours_and_puts_back(episode):
                  "within_distance"):
         assert lab[name].any(), name
     assert set(np.unique(lab["tilt_angle"])) == {0, 1, 2, 3}
+    action = episode["action"]
+    assert action.shape == (len(state), 4) and action.dtype == np.float32
+    timestep = tiny_config()["scene"]["timestep"]
+    frame_seconds = round(1 / (6 * timestep)) * timestep
+    hand = state[:, 0:3]
+    assert np.allclose(action[:-1, :3] * frame_seconds, np.diff(hand, axis=0), atol=1e-6), "commanded velocity"
+    assert (action[:, 3] == col["grasped"]).all(), "grasp flag during the frame's motion"
     first_contact = int(np.argmax(lab["contact"]))
     assert lab["reaching"][:first_contact].any() and not lab["receding"][:first_contact].any()
 

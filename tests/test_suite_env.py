@@ -23,7 +23,7 @@ class CountingObserver:
 
 
 def test_specs_and_fixed_length_episodes():
-    env = SuiteBatchEnv(CONFIG, 3, seed=0, observer=StateObserver(), embedding_dim=4, observer_uses_pixels=False)
+    env = SuiteBatchEnv(CONFIG, 3, seed=0, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
     check_env_specs(env)
     rollout = env.rollout(CONFIG.agent_steps, break_when_any_done=False)
     done = rollout.get(("next", "done")).squeeze(-1)
@@ -34,7 +34,7 @@ def test_specs_and_fixed_length_episodes():
 def test_reward_is_the_sum_over_the_action_repeat_and_states_are_reproducible():
     from dm_control import suite
 
-    env = SuiteBatchEnv(CONFIG, 2, seed=5, observer=StateObserver(), embedding_dim=4, observer_uses_pixels=False)
+    env = SuiteBatchEnv(CONFIG, 2, seed=5, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
     td = env.reset()
     first_obs = td.get("observation").clone()
     physics = [e.physics.get_state().copy() for e in env._envs]
@@ -48,7 +48,7 @@ def test_reward_is_the_sum_over_the_action_repeat_and_states_are_reproducible():
             plain.physics.set_state(physics[i])
         expected = sum(plain.step(action[i].numpy().astype(np.float64)).reward for _ in range(CONFIG.action_repeat))
         assert abs(float(reward[i]) - expected) < 1e-5
-    again = SuiteBatchEnv(CONFIG, 2, seed=5, observer=StateObserver(), embedding_dim=4, observer_uses_pixels=False)
+    again = SuiteBatchEnv(CONFIG, 2, seed=5, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
     assert torch.equal(again.reset().get("observation"), first_obs)  # same seed, same initial states
     assert not torch.equal(again.reset().get("observation"), first_obs)  # the next episode differs
 

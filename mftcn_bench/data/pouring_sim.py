@@ -25,6 +25,7 @@ from mftcn_bench.errors import DataError
 from mftcn_bench.rendering import MultiViewRenderer, ensure_gl
 
 Z = np.array([0.0, 0.0, 1.0])
+COLLECTOR_VERSION = 2  # part of a dataset's identity: bump when the same config would give other episodes
 
 
 def min_jerk(s: float) -> float:
@@ -414,18 +415,21 @@ class PouringEpisode:
     def run(self) -> dict[str, np.ndarray]:
         self.settle()
         limit = int(self.config["episode_length"])
-        frames, state = [], []
+        frames, state, action = [], [], []
         for _ in self.script():
             if len(frames) == limit:
                 break
             self.place_cameras(len(frames) * self.frame_seconds)
             frames.append(self.renderer.render())
             state.append(self.measure())
+            before = self.hand_pose().pos
             self.step_frame()
+            velocity = (self.hand_pose().pos - before) / self.frame_seconds
+            action.append([*velocity, float(self.data.eq_active[0])])
         state_array = np.stack(state)
         labels = labels_from_state(state_array, self.frame_seconds, self.config["labels"])
         return {"frames": np.stack(frames, axis=1), "state": state_array,
-                "action": np.zeros((len(frames), 0), dtype=np.float32), "labels": labels}
+                "action": np.array(action, dtype=np.float32), "labels": labels}
 
 
 def _inside(local: np.ndarray, radius: float, height: float, margin: float) -> np.ndarray:
@@ -436,8 +440,9 @@ def _inside(local: np.ndarray, radius: float, height: float, margin: float) -> n
 
 def collect_episode(config: Mapping[str, Any], index: int) -> dict[str, np.ndarray]:
     """Episode `index` of the simulated pouring dataset `config`; a pure function of (config, index).
-    Keys: frames [2, T, H, W, 3] uint8, state [T, 14] (`STATE_COLUMNS`), action [T, 0], labels [T, 9] int8."""
+    Keys: frames [2, T, H, W, 3] uint8, state [T, 14] (`STATE_COLUMNS`), action [T, 4] float32 (the hand's
+    commanded velocity over the next frame in m/s, and 1 while the grasp weld is on during it), labels [T, 9] int8."""
     return PouringEpisode(config, index).run()
 
 
-__all__ = ["STATE_COLUMNS", "collect_episode"]
+__all__ = ["COLLECTOR_VERSION", "STATE_COLUMNS", "collect_episode"]

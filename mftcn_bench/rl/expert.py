@@ -32,7 +32,8 @@ def expert_key(env: SuiteConfig, ppo: PPOConfig, seed: int) -> str:
 def state_env_factory(env_config: SuiteConfig):
     """Environments whose observation is the simulator state (nothing rendered)."""
     probe = SuiteBatchEnv(env_config, 1, 0, StateObserver(), 1, False)
-    state_dim = int(physics_state(probe._envs[0].physics, env_config.domain).shape[0])
+    state = physics_state(probe._envs[0].physics, env_config.domain)[None]
+    state_dim = int(StateObserver().push(None, np.ones(1, bool), state).shape[1])
 
     def make_env(num_envs: int, seed: int) -> SuiteBatchEnv:
         return SuiteBatchEnv(env_config, num_envs, seed, StateObserver(), state_dim, False)
@@ -80,6 +81,8 @@ class ExpertPolicy:
 
     @torch.no_grad()
     def act(self, state: np.ndarray) -> np.ndarray:
-        td = TensorDict({"observation": torch.as_tensor(state, dtype=torch.float32)[None]}, batch_size=[1])
+        """The mean action for one simulator state (as `physics_state` records it)."""
+        observation = StateObserver().push(None, np.ones(1, bool), np.asarray(state, dtype=np.float64)[None])
+        td = TensorDict({"observation": torch.from_numpy(observation)}, batch_size=[1])
         with self._mode:
             return self._nets.policy(td).get("action")[0].double().numpy()

@@ -77,10 +77,13 @@ class _StreamingObserver:
 
 
 class StateObserver:
-    """The simulator state itself (for expert policies, which are trained on true state)."""
+    """The true state as the true-state encoder gives it (cartpole's angle as sin and cos, so a spinning
+    pole's unbounded angle never reaches the policy), for expert policies trained on true state."""
 
     def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
-        return np.asarray(state, dtype=np.float32)
+        from mftcn_bench.encoders.baselines import state_embedding
+
+        return state_embedding(np.asarray(state, dtype=np.float64)).astype(np.float32)
 
 
 def make_observer(encoder: Encoder, num_envs: int) -> Observer:

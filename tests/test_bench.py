@@ -1,0 +1,115 @@
+"""The benchmark table's logic (targets, rows, alternation, the probe's memory arithmetic) and a small smoke
+of `mftcn-bench bench`; speed itself is measured under benchmarks/, never asserted here."""
+
+import json
+import math
+
+import numpy as np
+
+from mftcn_bench import bench, bench_probe
+from mftcn_bench.cli import main
+
+
+def row(ratio, target, value=1.0):
+    return bench.BenchRow("figure", value, "frames/s", "reference", 2.0, ratio, target)
+
+
+def test_targets_decide_met_on_the_ratio_or_the_value():
+    assert row(10.0, bench.Target(">=", 10)).met is True
+    assert row(9.99, bench.Target(">=", 10)).met is False
+    assert row(1.5, bench.Target("<=", 1.5)).met is True
+    assert row(1.51, bench.Target("<=", 1.5)).met is False
+    assert row(None, bench.Target("<=", 4, on="value", unit=" GiB"), value=3.9).met is True
+    assert row(None, bench.Target("<=", 4, on="value", unit=" GiB"), value=4.1).met is False
+    assert row(1.0, bench.Target("report")).met is None
+    assert row(math.nan, bench.Target(">=", 2)).met is None
+    assert str(bench.Target(">=", 0.5)) == ">= 0.5x" and str(bench.Target("report")) == "report"
+
+
+def test_table_has_one_line_per_row_with_every_column():
+    rows = [row(12.0, bench.Target(">=", 10)), row(0.06, bench.Target(">=", 0.5)),
+            bench.BenchRow("probe", 1.4, "GiB", "-", None, None, bench.Target("<=", 4, on="value", unit=" GiB"))]
+    lines = bench.format_table(rows).splitlines()
+    assert [c.strip() for c in lines[0].strip("|").split("|")] == ["figure", "value", "reference", "ratio",
+                                                                    "target", "met"]
+    assert len(lines) == 2 + len(rows)
+    assert "12.00x" in lines[2] and "yes" in lines[2]
+    assert "0.06x" in lines[3] and "NO" in lines[3]
+    assert "1.4 GiB" in lines[4] and "<= 4 GiB" in lines[4] and "yes" in lines[4]
+
+
+def test_alternate_reverses_the_order_every_other_round_and_reports_work_per_second():
+    calls = []
+
+    def block(name, work, seconds):
+        def run():
+            calls.append(name)
+            return work, seconds
+        return run
+
+    rates = bench.alternate({"a": block("a", 10, 2.0), "b": block("b", 3, 1.0)}, rounds=3)
+    assert calls == ["a", "b", "a", "b", "b", "a", "a", "b"]  # warm-up, then a b / b a / a b
+    assert rates == {"a": 5.0, "b": 3.0}
+
+
+def test_paper_scale_peak_adds_the_embedding_phase_growth_for_the_frames_it_did_not_probe():
+    small = bench_probe.ProbeMemory(2000, 1_000_000_000, 500, 296, 1.0, 1.0)
+    larger = bench_probe.ProbeMemory(3000, 1_010_000_000, 500, 296, 1.0, 1.0)
+    fit = bench_probe.ProbeMemory(180_000, 0, 900_000_000, 296, 0.0, 1.0)
+    growth = 10_000_000 / 1000  # measured growth (10 KB a frame) exceeds the features' 296 B
+    assert bench_probe.embedding_growth([small, larger]) == growth
+    assert bench_probe.paper_scale_peak([small, larger], fit, 180_000) == 1_010_000_000 + 177_000 * growth
+    flat = bench_probe.ProbeMemory(3000, 999_000_000, 500, 296, 1.0, 1.0)  # noise: never below the features
+    assert bench_probe.paper_scale_peak([small, flat], fit, 180_000) == 999_000_000 + 177_000 * 296
+    big_fit = bench_probe.ProbeMemory(180_000, 0, 3_000_000_000, 296, 0.0, 1.0)
+    assert bench_probe.paper_scale_peak([small, larger], big_fit, 180_000) == 3_000_000_000
+
+
+def test_probe_dataset_subset_links_the_chunks_of_the_first_episodes(tmp_path):
+    root = bench_probe.write_dataset(tmp_path / "datasets", 3, 1, 5, 8)
+    sub = bench_probe.subset(root, 2, 1, tmp_path / "sub")
+    manifest = json.loads((sub / "manifest.json").read_text())
+    assert [c["split"] for c in manifest["chunks"]] == ["train", "train", "test"]
+    from mftcn_bench.data.dataset import MultiViewDataset
+
+    episode = MultiViewDataset(sub).load(manifest["chunks"][0]["episode"])
+    assert episode.frames.shape == (2, 5, 8, 8, 3)
+    assert np.all(episode.frames[0, 1] == episode.frames[0, 1, 0, 0])  # constant within a frame
+
+
+def test_bench_command_prints_and_writes_the_table(tmp_path, capsys):
+    out = tmp_path / "perf.md"
+    assert main(["bench", "--quick", "--only", "streaming", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "streaming mfTCN step, lookback 29" in printed and "<= 1.5x the cost" in printed
+    text = out.read_text()
+    assert text.startswith("# mftcn-bench bench (quick)") and "cores" in text and "| figure" in text
+
+
+def test_bench_command_refuses_an_unknown_figure(capsys):
+    assert main(["bench", "--quick", "--only", "renders"]) == 2
+    assert "unknown benchmark(s) ['renders']" in capsys.readouterr().err
+
+
+def test_image_sized_offscreen_buffer_renders_the_same_pixels():
+    """The renderer's speed-up (an offscreen buffer of the image's size, not the suite's 640x480) must not
+    change a pixel: datasets keep their checksums."""
+    from mftcn_bench.rendering import MultiViewRenderer, ensure_gl
+
+    ensure_gl()
+    from dm_control import suite
+    from dm_control.mujoco.engine import Camera
+
+    ours, plain = (suite.load("cartpole", "swingup", task_kwargs={"random": 3}) for _ in range(2))
+    renderer = MultiViewRenderer(ours.physics, ["fixed", "lookatcart"], 48, 96, 16, 0)
+    plain.physics.model.vis.quality.shadowsize, plain.physics.model.vis.quality.offsamples = 16, 0
+    assert (plain.physics.model.vis.global_.offwidth, plain.physics.model.vis.global_.offheight) == (640, 480)
+    cameras = [Camera(plain.physics, 48, 96, camera_id=c) for c in ("fixed", "lookatcart")]
+    ours.reset()
+    plain.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        with plain.physics.reset_context():
+            plain.physics.set_state(ours.physics.get_state())
+        assert np.array_equal(renderer.render(), np.stack([c.render() for c in cameras]))
+        ours.step(rng.uniform(-1, 1, 1))
