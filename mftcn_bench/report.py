@@ -53,7 +53,7 @@ def _row_matches(row: PaperRow, record: RunRecord) -> bool:
     if record.encoder != row.encoder or record.task != row.task:
         return False
     where = dict(row.where)
-    default_dim = default_embedding_dim(row.encoder)
+    default_dim = default_embedding_dim(row.encoder, row.task)
     if "encoder.embedding_dim" not in where and default_dim is not None:
         where["encoder.embedding_dim"] = default_dim  # an overridden size is another row
     return all(config_value(record, key) == value for key, value in where.items())

@@ -62,17 +62,21 @@ def counted_runs(records: Iterable[RunRecord], accept: Accept = matches_current_
     return [latest[k] for k in sorted(latest, key=lambda k: tuple(str(p) for p in k[:4]) + (k[4],))]
 
 
-def default_embedding_dim(encoder: str) -> int | None:
-    """The embedding size in the encoder's spec file (None for an encoder not installed)."""
+def default_embedding_dim(encoder: str, task: str | None = None) -> int | None:
+    """The embedding size the encoder has on `task` without overrides: its spec file's, or the task's
+    `[encoder_defaults.<encoder>]` (None for an encoder or task not installed)."""
     try:
-        return registry.get("encoders", encoder).spec.embedding_dim
+        dim = registry.get("encoders", encoder).spec.embedding_dim
+        if task is not None:
+            dim = registry.get("tasks", task).spec.encoder_defaults.get(encoder, {}).get("embedding_dim", dim)
+        return dim
     except BenchError:
         return None
 
 
 def variant_label(record: RunRecord) -> str:
     """The encoder's name, with the embedding size when it was overridden."""
-    dim, default = embedding_dim(record), default_embedding_dim(record.encoder)
+    dim, default = embedding_dim(record), default_embedding_dim(record.encoder, record.task)
     if dim is not None and default is not None and dim != default:
         return f"{record.encoder} (embedding {dim})"
     return record.encoder

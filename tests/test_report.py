@@ -102,3 +102,13 @@ def test_latex_format_escapes_and_uses_pm(tmp_path):
 def test_every_table_renders_from_an_empty_store(tmp_path):
     text = report(ResultStore(tmp_path / "r.sqlite"), list(TABLES))
     assert text.count("### ") == 5 and "- (0.0198)" in text and "- (811.10)" in text and "- (8.9)" in text
+
+
+def test_a_task_encoder_default_embedding_size_is_the_paper_row_not_an_override():
+    # cheetah's spec gives true-state its 17-value state ([encoder_defaults.true-state])
+    _, config = resolve_config(registry.get("encoders", "true-state").spec, registry.get("tasks", "cheetah").spec,
+                               "quick")
+    assert config["encoder"]["embedding_dim"] == 17
+    run = make_record("true-state", "cheetah", 0, {"return_mean": 324.0, "return_std": 16.0}, config=config)
+    text = render(TABLES["cheetah"], table_rows(TABLES["cheetah"], [run], accept=accept_all))
+    assert "324.00 (390.16)" in line_of(text, "True State") and NOT_IN_PAPER not in text
