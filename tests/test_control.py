@@ -34,9 +34,5 @@ def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encod
     run_dir = control_home / "runs" / record.run_id
     assert (run_dir / "curve.png").stat().st_size > 0
     assert json.loads((run_dir / "result.json").read_text())["curves"] == record.curves
-
-
-@pytest.mark.slow
-def test_cheetah_expert_is_trained_once_for_all_rows(control_home):
-    experts = list((control_home / "experts").glob("cheetah-run-*/expert.pt"))
-    assert len(experts) == 1
+    if task == "cheetah":  # one expert serves every row's demonstrations
+        assert len(list((control_home / "experts").glob("cheetah-run-*/expert.pt"))) == 1

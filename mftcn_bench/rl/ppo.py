@@ -35,7 +35,7 @@ from torchrl.objectives.value import GAE
 
 from mftcn_bench.errors import SpecError, TrainingError
 from mftcn_bench.fileio import atomic_write_bytes
-from mftcn_bench.rl.suite_env import SuiteBatchEnv
+from mftcn_bench.rl.suite_env import EnvFactory, SuiteBatchEnv
 
 DISTRIBUTIONS = {"tanh_normal": TanhNormal, "normal": IndependentNormal}
 
@@ -159,7 +159,7 @@ def episode_returns(batch, num_envs: int, agent_steps: int) -> np.ndarray:
     return reward.sum(-1).flatten().double().numpy()
 
 
-def train_ppo(make_env: Callable[[int, int], SuiteBatchEnv], config: PPOConfig, seed: int, workdir: Path,
+def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
               progress: Progress, trunk: nn.Module | None = None) -> tuple[PolicyNetworks, TrainState]:
     """Train a policy; resumes from `workdir/ppo_checkpoint.pt` if a killed run left one."""
     torch.manual_seed(seed)
@@ -262,7 +262,7 @@ def _load_checkpoint(path: Path, nets: PolicyNetworks,
 
 
 @torch.no_grad()
-def evaluate_policy(make_env: Callable[[int, int], SuiteBatchEnv], nets: PolicyNetworks, episodes: int,
+def evaluate_policy(make_env: EnvFactory, nets: PolicyNetworks, episodes: int,
                     num_envs: int, seed: int) -> np.ndarray:
     """Returns of `episodes` test episodes with the policy's deterministic (mean) action, on environments
     seeded apart from training."""
