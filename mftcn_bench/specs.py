@@ -75,7 +75,9 @@ class TaskSpec:
     presets: Mapping[str, Mapping[str, Any]]
     leaderboard: Mapping[str, Any] = field(default_factory=dict)
     # `[encoder_defaults.<encoder>]`: what this task sets for one encoder before presets and overrides,
-    # e.g. the state size of true-state and random-state on a domain whose state is not cartpole's.
+    # e.g. the state size of true-state and random-state on a domain whose state is not cartpole's. A preset
+    # may have its own `[presets.<preset>.encoder_defaults.<encoder>]`, applied after the preset's other keys
+    # (e.g. fewer clips a batch for a long lookback on a preset with short episodes).
     encoder_defaults: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     @classmethod
@@ -83,9 +85,12 @@ class TaskSpec:
         data = dict(data)
         presets = data.pop("presets", {})
         encoder_defaults = data.pop("encoder_defaults", {})
-        if not isinstance(encoder_defaults, Mapping) or not all(
-                isinstance(v, Mapping) for v in encoder_defaults.values()):
+        if not _tables_of_tables(encoder_defaults):
             raise SpecError(f"task spec {name!r}: [encoder_defaults.<encoder>] must be tables")
+        for preset_name, preset in presets.items():
+            if not isinstance(preset, Mapping) or not _tables_of_tables(preset.get("encoder_defaults", {})):
+                raise SpecError(f"task spec {name!r}: [presets.{preset_name}.encoder_defaults.<encoder>] "
+                                "must be tables")
         description = data.pop("description", None)
         default_preset = data.pop("default_preset", None)
         leaderboard = data.pop("leaderboard", {})
@@ -97,6 +102,10 @@ class TaskSpec:
             raise SpecError(f"task spec {name!r}: 'default_preset' must name one of its [presets.*] tables")
         return cls(name, description, default_preset, data, presets, dict(leaderboard),
                    {k: dict(v) for k, v in encoder_defaults.items()})
+
+
+def _tables_of_tables(value: Any) -> bool:
+    return isinstance(value, Mapping) and all(isinstance(v, Mapping) for v in value.values())
 
 
 def parse_toml(text: str, origin: str) -> dict[str, Any]:
@@ -195,9 +204,10 @@ def resolve_config(
     }
     defaults = task.encoder_defaults.get(encoder.name, {})
     config = apply_overrides(config, flatten(defaults, "encoder.").items())
-    config = apply_overrides(
-        config, flatten(task.presets[preset]).items(), skip_missing_encoder_keys=True
-    )
+    preset_table = dict(task.presets[preset])
+    preset_encoder_defaults = preset_table.pop("encoder_defaults", {}).get(encoder.name, {})
+    config = apply_overrides(config, flatten(preset_table).items(), skip_missing_encoder_keys=True)
+    config = apply_overrides(config, flatten(preset_encoder_defaults, "encoder.").items())
     overrides = list(overrides)
     for key, _ in overrides:
         if key in ("encoder.name", "encoder.family", "task.name"):

@@ -60,3 +60,20 @@ def test_spec_validation():
     with pytest.raises(SpecError, match="not valid TOML"):
         parse_toml("a = ", "x.toml")
     assert EncoderSpec.from_dict("e", {"family": "f", "description": "d", "frames": 5, "stride": 7}).lookback == 29
+
+
+def test_encoder_defaults_task_wide_then_preset_then_overrides():
+    task = TaskSpec.from_dict("t", {
+        "description": "d", "default_preset": "quick",
+        "encoder_defaults": {"e": {"embedding_dim": 17, "train": {"lr": 0.5}}},
+        "presets": {"quick": {"encoder": {"train": {"steps": 7}},
+                              "encoder_defaults": {"e": {"train": {"steps": 3}}, "other": {"frames": 2}}},
+                    "paper": {}}})
+    config = resolve_config(ENCODER, task, "quick")[1]["encoder"]
+    assert (config["embedding_dim"], config["train"]["lr"], config["train"]["steps"]) == (17, 0.5, 3)
+    assert config["frames"] == 4                        # another encoder's defaults are not applied
+    assert resolve_config(ENCODER, task, "paper")[1]["encoder"]["train"]["steps"] == 100
+    assert resolve_config(ENCODER, task, "quick", [("encoder.train.steps", 9)])[1]["encoder"]["train"]["steps"] == 9
+    with pytest.raises(SpecError, match=r"presets.quick.encoder_defaults.<encoder>\] must be tables"):
+        TaskSpec.from_dict("t", {"description": "d", "default_preset": "quick",
+                                 "presets": {"quick": {"encoder_defaults": {"e": 3}}}})

@@ -81,3 +81,25 @@ def test_streaming_accepts_any_frame_head_network():
     frames = episode(np.random.default_rng(1), 6)
     out = np.concatenate([streamer.push(f[None], np.array([t == 0])) for t, f in enumerate(frames)])
     assert np.allclose(out, encoder.embed_episode(frames), atol=1e-5)
+
+
+def test_observed_frames_enter_the_history_without_a_head_pass():
+    encoder = make(5, 1)
+    heads = []
+    head = encoder.net.head
+
+    def counting(features):
+        heads.append(len(features))
+        return head(features)
+
+    encoder.net.head = counting
+    streamer = encoder.streaming(num_envs=1)
+    frames = episode(np.random.default_rng(2), 12)
+    out = []
+    for t, frame in enumerate(frames):  # embed every third frame only, as an action repeat of 3 does
+        if t % 3 == 2:
+            out.append(streamer.push(frame[None], np.array([t == 0])))
+        else:
+            streamer.observe(frame[None], np.array([t == 0]))
+    assert len(heads) == 4
+    assert np.allclose(np.concatenate(out), encoder.embed_episode(frames)[2::3], atol=1e-5)

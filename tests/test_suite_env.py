@@ -12,13 +12,16 @@ CONFIG = SuiteConfig("cartpole", "swingup", "fixed", 24, 32, episode_length=40, 
 
 
 class CountingObserver:
-    """Records how many frames it was pushed and returns the state."""
+    """Records the frames it was given (embedded: push; history only: observe) and returns the state."""
 
     def __init__(self):
         self.pushes = []
 
+    def observe(self, frames, episode_start, state):
+        self.pushes.append((None if frames is None else frames.shape, bool(episode_start.all()), "observe"))
+
     def push(self, frames, episode_start, state):
-        self.pushes.append((None if frames is None else frames.shape, bool(episode_start.all())))
+        self.pushes.append((None if frames is None else frames.shape, bool(episode_start.all()), "push"))
         return state.astype(np.float32)
 
 
@@ -63,6 +66,8 @@ def test_renders_only_the_frames_a_clip_can_reach():
     # one frame at the reset, then the last min(lookback 3, repeat 4) = 3 sub-steps of the repeat
     assert [p[0] for p in observer.pushes] == [(2, 24, 32, 3)] * 4
     assert [p[1] for p in observer.pushes] == [True, False, False, False]
+    # only the last frame of the repeat is embedded (the observation the policy reads)
+    assert [p[2] for p in observer.pushes] == ["push", "observe", "observe", "push"]
     blind = CountingObserver()
     env = SuiteBatchEnv(CONFIG, 2, seed=0, observer=blind, embedding_dim=4, observer_uses_pixels=False, lookback=3)
     td = env.reset()

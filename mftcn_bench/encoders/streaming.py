@@ -51,9 +51,10 @@ class StreamingEmbedder:
         self._started[:] = False
 
     @torch.no_grad()
-    def push(self, frames: np.ndarray, episode_start: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
-        """New frames uint8 [E, H, W, 3] and which environments start an episode with them (bool [E])
-        -> float32 [E, D], the embedding of the clip ending at each new frame. `state` is not used."""
+    def observe(self, frames: np.ndarray, episode_start: np.ndarray, state: np.ndarray | None = None) -> None:
+        """Take new frames uint8 [E, H, W, 3] (and which environments start an episode with them, bool [E])
+        into the history without embedding: for frames whose embedding nobody reads (the inner steps of an
+        action repeat). `state` is not used."""
         frames = np.asarray(frames)
         start = np.asarray(episode_start, dtype=bool).reshape(-1)
         if frames.ndim != 4 or frames.shape[0] != self.num_envs or frames.shape[-1] != 3:
@@ -73,5 +74,11 @@ class StreamingEmbedder:
         restart = torch.from_numpy(np.flatnonzero(start))
         if len(restart):
             self._buffer[restart] = features[restart].unsqueeze(1)
+
+    @torch.no_grad()
+    def push(self, frames: np.ndarray, episode_start: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
+        """New frames uint8 [E, H, W, 3] and which environments start an episode with them (bool [E])
+        -> float32 [E, D], the embedding of the clip ending at each new frame. `state` is not used."""
+        self.observe(frames, episode_start, state)
         index = (self._slot + self._offsets) % self.lookback  # ring slots of frames t-(n-1)s, ..., t
         return self.net.head(self._buffer[:, index]).numpy().astype(np.float32, copy=False)

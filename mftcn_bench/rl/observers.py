@@ -27,6 +27,10 @@ class Observer(Protocol):
         state float [E, S] -> float32 [E, D]."""
         ...
 
+    def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None:
+        """As `push`, for a frame whose embedding is not needed (it still enters the clip history)."""
+        ...
+
 
 def uses_pixels(encoder: Encoder) -> bool:
     """Whether the encoder reads rendered frames (true state and random state do not)."""
@@ -45,7 +49,7 @@ class ClipWindowObserver:
         self._state: np.ndarray | None = None  # [E, lookback, S]
         self._slot = -1
 
-    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+    def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None:
         start = np.asarray(episode_start, dtype=bool)
         if self._state is None:
             if not start.all():
@@ -59,8 +63,11 @@ class ClipWindowObserver:
         if frames is not None:
             self._frames[:, self._slot] = frames
             self._frames[start] = frames[start, None]
+
+    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+        self.observe(frames, episode_start, state)
         index = (self._slot + self._offsets) % self.lookback
-        clip_frames = (self._frames[:, index] if frames is not None
+        clip_frames = (self._frames[:, index] if self._frames is not None
                        else np.zeros((self.num_envs, len(index), 1, 1, 3), dtype=np.uint8))
         out = self.encoder.embed(ClipBatch(clip_frames, self._state[:, index]))
         return check_embeddings(self.encoder, out, self.num_envs)
@@ -75,6 +82,13 @@ class _StreamingObserver:
         out = self._stream.push(frames, episode_start, state)
         return check_embeddings(self.encoder, out, self.num_envs)
 
+    def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None:
+        observe = getattr(self._stream, "observe", None)  # a plugin's stream may only have push
+        if callable(observe):
+            observe(frames, episode_start, state)
+        else:
+            self._stream.push(frames, episode_start, state)
+
 
 class StateObserver:
     """The true state as the true-state encoder gives it (cartpole's angle as sin and cos, so a spinning
@@ -84,6 +98,9 @@ class StateObserver:
         from mftcn_bench.encoders.baselines import state_embedding
 
         return state_embedding(np.asarray(state, dtype=np.float64)).astype(np.float32)
+
+    def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None:
+        """The state has no history."""
 
 
 def make_observer(encoder: Encoder, num_envs: int) -> Observer:

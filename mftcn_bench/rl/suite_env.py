@@ -142,7 +142,9 @@ class SuiteBatchEnv(EnvBase):
     def _state(self) -> np.ndarray:
         return np.stack([physics_state(env.physics, self.config.domain) for env in self._envs])
 
-    def _observe(self, start: bool) -> torch.Tensor:
+    def _observe(self, start: bool, embed: bool = True) -> torch.Tensor | None:
+        """The observation of the current frame; with `embed` False the frame only enters the clip
+        history (an inner step of an action repeat, whose observation nobody reads)."""
         frames = self._frames()
         if self.pixel_clip is not None:
             chw = frames.transpose(0, 3, 1, 2)
@@ -151,9 +153,14 @@ class SuiteBatchEnv(EnvBase):
                 self._window[:] = chw[:, None]
             else:
                 self._window[:, self._slot] = chw
+            if not embed:
+                return None
             index = (self._slot + self._clip_offsets) % self.lookback
             return torch.from_numpy(self._window[:, index].copy())
         starts = np.full(self.num_envs, start)
+        if not embed:
+            self.observer.observe(frames, starts, self._state())
+            return None
         return torch.from_numpy(self.observer.push(frames, starts, self._state()))
 
     # -- torchrl EnvBase ------------------------------------------------------------------------------
@@ -181,8 +188,10 @@ class SuiteBatchEnv(EnvBase):
         for r in range(repeat):
             for i, env in enumerate(self._envs):
                 reward[i] += step_reward(env, action[i])
-            if r >= repeat - self.render_steps or (r == repeat - 1):
+            if r == repeat - 1:
                 obs = self._observe(start=False)
+            elif r >= repeat - self.render_steps:
+                self._observe(start=False, embed=False)
         self._t += 1
         truncated = torch.full((self.num_envs, 1), self._t >= self.config.agent_steps, dtype=torch.bool)
         return TensorDict({self._obs_key: obs, "reward": torch.from_numpy(reward).float().unsqueeze(-1),
