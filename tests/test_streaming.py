@@ -22,6 +22,18 @@ def episode(rng, length):
     return rng.integers(0, 255, (length, *SHAPE, 3), dtype=np.uint8)
 
 
+def count_calls(net, method):
+    """Wrap `net.<method>` to record the batch size of each call; returns the list it appends to."""
+    calls, original = [], getattr(net, method)
+
+    def counting(batch):
+        calls.append(len(batch))
+        return original(batch)
+
+    setattr(net, method, counting)
+    return calls
+
+
 @pytest.mark.parametrize("frames,stride,lookback", [(1, 1, 1), (5, 1, 5), (4, 4, 13), (5, 7, 29)])
 def test_streaming_equals_episode_embedding_across_boundaries(frames, stride, lookback):
     torch.set_num_threads(1)
@@ -46,14 +58,7 @@ def test_streaming_equals_episode_embedding_across_boundaries(frames, stride, lo
 
 def test_every_frame_costs_one_base_forward_whatever_the_lookback():
     encoder = make(5, 7)
-    calls = []
-    base = encoder.net.frame_features
-
-    def counting(images):
-        calls.append(len(images))
-        return base(images)
-
-    encoder.net.frame_features = counting
+    calls = count_calls(encoder.net, "frame_features")
     streamer = encoder.streaming(num_envs=3)
     frames = episode(np.random.default_rng(0), 3)
     streamer.push(frames, np.ones(3, bool))
@@ -85,14 +90,7 @@ def test_streaming_accepts_any_frame_head_network():
 
 def test_observed_frames_enter_the_history_without_a_head_pass():
     encoder = make(5, 1)
-    heads = []
-    head = encoder.net.head
-
-    def counting(features):
-        heads.append(len(features))
-        return head(features)
-
-    encoder.net.head = counting
+    heads = count_calls(encoder.net, "head")
     streamer = encoder.streaming(num_envs=1)
     frames = episode(np.random.default_rng(2), 12)
     out = []
