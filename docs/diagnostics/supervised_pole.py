@@ -54,7 +54,7 @@ def main() -> None:
     test_index = np.arange(len(splits["test"][0]))
     began = time.monotonic()
     for step in range(args.steps + 1):
-        if step % 250 == 0:
+        if step % 250 == 0 or step == args.steps:
             with torch.no_grad():
                 x, y = tensors("test", test_index)
                 mse = ((net(x) - y) ** 2).mean(0).numpy()

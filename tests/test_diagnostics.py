@@ -1,0 +1,45 @@
+"""The diagnostic scripts in docs/diagnostics run on a (synthetic) collected dataset."""
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mftcn_bench.data.dataset import ensure_dataset
+from tests.synthetic import synthetic_collector, synthetic_config
+
+DIAGNOSTICS = Path(__file__).resolve().parent.parent / "docs" / "diagnostics"
+
+
+def load(name):
+    spec = importlib.util.spec_from_file_location(name, DIAGNOSTICS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_pick_spread_keeps_the_gap_within_an_episode():
+    pick_spread = load("cart_matched_batches").pick_spread
+    episode = np.array([0, 0, 0, 0, 1, 1])
+    time_step = np.array([0, 3, 8, 20, 0, 2])
+    picked = pick_spread(np.arange(6), episode, time_step, count=10, gap=8)
+    assert picked.tolist() == [0, 2, 3, 4]  # 1 (3 frames after 0) and 5 (2 after 4) are too close
+    assert pick_spread(np.arange(6), episode, time_step, count=2, gap=8).tolist() == [0, 2]
+
+
+@pytest.mark.parametrize("command", [
+    ["cart_matched_batches.py", "--batches", "cart-matched", "--tolerance", "10"],
+    ["cart_matched_batches.py", "--batches", "random"],
+    ["supervised_pole.py"],
+])
+def test_diagnostic_runs(tmp_path, command):
+    ensure_dataset(tmp_path, synthetic_config(height=48, width=96), synthetic_collector, show_progress=False)
+    folder = next(p for p in tmp_path.iterdir() if p.is_dir())
+    steps = ["--steps", "3"]
+    done = subprocess.run([sys.executable, str(DIAGNOSTICS / command[0]), str(folder), *command[1:], *steps],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "step 3:" in done.stdout
