@@ -1,6 +1,8 @@
 """The diagnostic scripts in docs/diagnostics run on a (synthetic) collected dataset."""
 
 import importlib.util
+import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -43,3 +45,20 @@ def test_diagnostic_runs(tmp_path, command):
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "step 3:" in done.stdout
+
+
+@pytest.fixture(scope="module")
+def smoke_home(tmp_path_factory):
+    """One results home for the probe tests, so swing-up's smoke dataset is collected once."""
+    return tmp_path_factory.mktemp("home")
+
+
+@pytest.mark.parametrize(("encoder", "low", "high"), [("true-state", 0.7, 1.0), ("random-state", -1.0, 0.2)])
+def test_embedding_state_probe_tells_state_from_noise(smoke_home, encoder, low, high):
+    command = [sys.executable, str(DIAGNOSTICS / "embedding_state_probe.py"), "--encoder", encoder,
+               "--task", "swingup", "--preset", "smoke"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "MFTCN_BENCH_HOME": str(smoke_home)})
+    assert done.returncode == 0, done.stderr
+    mean = float(re.search(r"mean R\^2 (-?[\d.]+)", done.stdout).group(1))
+    assert low <= mean <= high, done.stdout  # smoke: 600 train frames, so true state is not fitted exactly
