@@ -55,10 +55,26 @@ def smoke_home(tmp_path_factory):
 
 @pytest.mark.parametrize(("encoder", "low", "high"), [("true-state", 0.7, 1.0), ("random-state", -1.0, 0.2)])
 def test_embedding_state_probe_tells_state_from_noise(smoke_home, encoder, low, high):
-    command = [sys.executable, str(DIAGNOSTICS / "embedding_state_probe.py"), "--encoder", encoder,
-               "--task", "swingup", "--preset", "smoke"]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "MFTCN_BENCH_HOME": str(smoke_home)})
+    done = run_probe(smoke_home, "--encoder", encoder, "--task", "swingup", "--preset", "smoke")
     assert done.returncode == 0, done.stderr
-    mean = float(re.search(r"mean R\^2 (-?[\d.]+)", done.stdout).group(1))
+    mean = float(re.search(r"test split: mean R\^2 (-?[\d.]+)", done.stdout).group(1))
     assert low <= mean <= high, done.stdout  # smoke: 600 train frames, so true state is not fitted exactly
+
+
+def run_probe(home, *args):
+    return subprocess.run([sys.executable, str(DIAGNOSTICS / "embedding_state_probe.py"), *args], capture_output=True,
+                          text=True, timeout=600, env={**os.environ, "MFTCN_BENCH_HOME": str(home)})
+
+
+def test_embedding_state_probe_on_random_action_episodes(tmp_path):
+    done = run_probe(tmp_path, "--encoder", "true-state", "--task", "cheetah", "--preset", "smoke",
+                     "--random-episodes", "1")
+    assert done.returncode == 0, done.stderr
+    assert re.search(r"1 random-action episodes \(100 frames\): mean R\^2 -?[\d.]+", done.stdout), done.stdout
+
+
+def test_random_action_episodes_need_a_task_with_demonstrations(smoke_home):
+    done = run_probe(smoke_home, "--encoder", "true-state", "--task", "swingup", "--preset", "smoke",
+                     "--random-episodes", "1")
+    assert done.returncode != 0
+    assert "needs a task whose dataset is an expert's demonstrations" in done.stderr

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -19,12 +19,20 @@ from mftcn_bench.rl.ppo import PPOConfig
 from mftcn_bench.rl.suite_env import SuiteConfig, physics_state
 
 
-class ExpertDemoCollector:
-    """`collector(config, index)` for `ensure_dataset`, recording the expert stored at `expert_path`."""
+class StatePolicy(Protocol):
+    """What the collector records: an action for a simulator state."""
 
-    def __init__(self, expert_path: Path, env_config: SuiteConfig, ppo: PPOConfig) -> None:
+    def act(self, state: np.ndarray) -> np.ndarray: ...
+
+
+class ExpertDemoCollector:
+    """`collector(config, index)` for `ensure_dataset`, recording the expert stored at `expert_path`, or
+    `policy` instead when one is given (e.g. random actions, to see states the demonstrations never visit)."""
+
+    def __init__(self, expert_path: Path, env_config: SuiteConfig, ppo: PPOConfig,
+                 policy: StatePolicy | None = None) -> None:
         self.expert_path, self.env_config, self.ppo = expert_path, env_config, ppo
-        self._expert: ExpertPolicy | None = None
+        self._expert: StatePolicy | None = policy
 
     def __call__(self, config: Mapping[str, Any], index: int) -> dict[str, np.ndarray]:
         ensure_gl()
