@@ -1,15 +1,15 @@
 """Diagnostic: how much of a control task's true state does a fitted encoder's embedding carry?
 
 Loads (or fits, when it is not cached yet) the encoder of `mftcn-bench run --encoder E --task T --preset P`,
-embeds every episode of the task's dataset from the camera the policy sees, and fits the cartpole-probe's
-MLP (scikit-learn, features [e_t, e_t - e_{t-1}], `tasks/cartpole-probe.toml`'s [probe] table) to the
-standardised simulator state (as true-state embeds it: a cartpole angle as its sine and cosine) on the train
-split. Prints R^2 per state dimension on the test split and the
-mean. Used to tell "the embedding does not carry the state" apart from "PPO does not learn from it" for a
-control row that falls short of the paper (see the note on the cheetah mftcn5 row in the README). It reads
-the dataset the encoder was trained on; for a task whose dataset is an expert's demonstrations (cheetah),
-`--random-episodes N` also records N episodes of uniformly random actions (held for the action repeat) and
-prints the same probe's R^2 on them: states the demonstrations never visit, like a PPO agent's early ones.
+embeds every episode of the task's dataset from the camera the policy sees, and fits the cartpole-probe's MLP
+(scikit-learn, features [e_t, e_t - e_{t-1}], `tasks/cartpole-probe.toml`'s [probe] table) to the standardised
+simulator state (as true-state embeds it: a cartpole angle as its sine and cosine) on the train split. Prints
+R^2 per state dimension on the test split and the mean. Used to tell "the embedding does not carry the state"
+apart from "PPO does not learn from it" for a control row that falls short of the paper (see the note on the
+cheetah mftcn5 row in the README). It reads the dataset the encoder was trained on; for a task whose dataset
+is an expert's demonstrations (cheetah), `--random-episodes N` also records N episodes of uniformly random
+actions (held for the action repeat) and prints the same probe's R^2 on them: states the demonstrations never
+visit, like a PPO agent's early ones.
 
     MFTCN_BENCH_HOME=... python docs/diagnostics/embedding_state_probe.py --encoder mftcn5 --task cheetah \
         --preset quick --random-episodes 4
@@ -24,8 +24,6 @@ from collections.abc import Iterable
 import numpy as np
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.metrics import r2_score
-from sklearn.neural_network import MLPRegressor
-from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 
 from mftcn_bench import registry
@@ -35,7 +33,7 @@ from mftcn_bench.encoders.baselines import state_embedding
 from mftcn_bench.home import BenchHome
 from mftcn_bench.rendering import ensure_gl
 from mftcn_bench.runner import PreparedRun, RunRequest, build_encoder, prepare, prepare_dataset
-from mftcn_bench.tasks.probe import ProbeConfig, probe_features
+from mftcn_bench.tasks.probe import ProbeConfig, probe_features, probe_regressor
 
 
 def features(encoder: Encoder, episodes: Iterable[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
@@ -94,10 +92,7 @@ def main() -> None:
 
     probe = ProbeConfig(**registry.get("tasks", "cartpole-probe").spec.tables["probe"])
     scale = StandardScaler().fit(y_train)
-    regressor = make_pipeline(StandardScaler(), MLPRegressor(
-        hidden_layer_sizes=tuple(probe.hidden), solver="adam", learning_rate_init=probe.lr,
-        batch_size=probe.batch_size, max_iter=probe.epochs, tol=probe.tol, early_stopping=probe.early_stopping,
-        validation_fraction=probe.validation_fraction, n_iter_no_change=probe.patience, random_state=args.seed))
+    regressor = probe_regressor(probe, args.seed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         regressor.fit(x_train, scale.transform(y_train))

@@ -22,7 +22,7 @@ import numpy as np
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.metrics import mean_squared_error
 from sklearn.neural_network import MLPRegressor
-from sklearn.pipeline import make_pipeline
+from sklearn.pipeline import Pipeline, make_pipeline
 from sklearn.preprocessing import StandardScaler
 
 from mftcn_bench.data.cartpole import camera_names, collect_episode
@@ -76,6 +76,15 @@ def probe_features(embeddings: np.ndarray) -> np.ndarray:
     return np.concatenate([embeddings, embeddings - previous], axis=1)
 
 
+def probe_regressor(probe: ProbeConfig, seed: int) -> Pipeline:
+    """The probe's MLP (Adam, early stopping on a held-out fraction) behind a feature standardiser."""
+    return make_pipeline(StandardScaler(), MLPRegressor(
+        hidden_layer_sizes=tuple(probe.hidden), solver="adam", learning_rate_init=probe.lr,
+        batch_size=probe.batch_size, max_iter=probe.epochs, tol=probe.tol, early_stopping=probe.early_stopping,
+        validation_fraction=probe.validation_fraction, n_iter_no_change=probe.patience, random_state=seed,
+        shuffle=True))
+
+
 def summarize(mse: Mapping[str, float]) -> dict[str, float]:
     """Per-attribute MSE plus Position, Motion and Average means."""
     out = {f"mse_{k}": float(mse[k]) for k in TARGETS}
@@ -122,11 +131,7 @@ class CartpoleProbe:
     def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path | None = None) -> TaskResult:
         x_train, y_train = self.features(encoder, dataset, "train")
         x_test, y_test = self.features(encoder, dataset, "test")
-        regressor = make_pipeline(StandardScaler(), MLPRegressor(
-            hidden_layer_sizes=tuple(self.probe.hidden), solver="adam", learning_rate_init=self.probe.lr,
-            batch_size=self.probe.batch_size, max_iter=self.probe.epochs, tol=self.probe.tol,
-            early_stopping=self.probe.early_stopping, validation_fraction=self.probe.validation_fraction,
-            n_iter_no_change=self.probe.patience, random_state=self.seed, shuffle=True))
+        regressor = probe_regressor(self.probe, self.seed)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
             regressor.fit(x_train, y_train)
