@@ -86,3 +86,37 @@ def test_running_normalizer_matches_numpy_over_all_batches():
     x = torch.tensor([[3.0, 3.0, 1e6]])
     expected = (x.double() - every.mean(0)) / np.sqrt(every.var(0) + 1e-8)
     assert torch.allclose(norm(x).double()[0, :2], expected[0, :2], atol=1e-5) and norm(x)[0, 2] == 10.0
+
+
+def test_pixel_critic_sees_one_environment_at_a_time_when_computing_advantages(tmp_path):
+    """GAE's value calls are chunked by environment for a pixel trunk: a whole batch of clips at once needs
+    tens of GB of CNN activations at 160x160."""
+    from torch import nn
+
+    from mftcn_bench.rl.suite_env import PixelClip, SuiteBatchEnv
+
+    no_grad_batches: list[int] = []
+
+    class Trunk(nn.Module):
+        out_features = 4
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.linear = nn.Linear(3 * ENV.height * ENV.width, 4)
+
+        def forward(self, clips: torch.Tensor) -> torch.Tensor:
+            flat = clips.reshape(-1, 3 * ENV.height * ENV.width).float() / 255.0
+            if not torch.is_grad_enabled():
+                no_grad_batches.append(flat.shape[0])
+            return self.linear(flat).reshape(*clips.shape[:-4], 4)
+
+    def make_env(num_envs: int, seed: int) -> SuiteBatchEnv:
+        return SuiteBatchEnv(ENV, num_envs, seed, None, 4, True, pixel_clip=PixelClip(1, 1))
+
+    config = PPOConfig(**{**PPO.__dict__, "frames": 160, "num_envs": 3})
+    train_ppo(make_env, config, 0, tmp_path, lambda *args: None, trunk=Trunk())
+    agent_steps = ENV.episode_length // ENV.action_repeat
+    # Collection steps the policy on all 3 environments at once (3 clips); advantages: one environment's
+    # 10 steps per call, never the batch's 30 (or 60 with the next observations).
+    assert max(no_grad_batches) == agent_steps
+    assert no_grad_batches.count(agent_steps) == 2 * 3 * 2  # 2 batches x 3 environments x (obs, next obs)

@@ -169,7 +169,10 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
     loss = ClipPPOLoss(nets.policy, nets.value, clip_epsilon=config.clip_epsilon, clip_value=config.clip_value,
                        entropy_coeff=config.entropy_coeff, critic_coeff=config.critic_coeff,
                        loss_critic_type="l2", normalize_advantage=True)
-    advantage = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=nets.value, average_gae=False)
+    # With a pixel trunk the critic sees one environment's steps at a time: all of a batch's observations
+    # and next observations at once (2 x 4,000 clips of 160x160) need more than 20 GB of CNN activations.
+    advantage = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=nets.value, average_gae=False,
+                    value_chunk_size=None if trunk is None else 1)
     optimizer = torch.optim.Adam(loss.parameters(), lr=config.lr)
     batch_steps = config.num_envs * config.episodes_per_batch * agent_steps
     frames_per_batch = batch_steps * env.config.action_repeat
