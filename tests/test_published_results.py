@@ -2,7 +2,8 @@
 
 These files are the evidence behind the README's numbers (config, versions, curves of each run), so a
 change to the record format or to the registry that would make them unreadable fails here, not on a
-researcher's machine.
+researcher's machine. So does a spec change that would drop a published run from the boards (the last
+test): rerun that row, or move its record out of results/ and say so in the README.
 """
 
 import json
