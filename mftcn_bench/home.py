@@ -14,7 +14,8 @@ DEFAULT_HOME = Path("~/.mftcn-bench")
 
 @dataclass(frozen=True)
 class BenchHome:
-    """The folder layout under one home: `datasets/`, `encoders/`, `experts/`, `runs/`, `results.sqlite`."""
+    """The folder layout under one home: `datasets/`, `features/`, `encoders/`, `experts/`, `runs/`,
+    `results.sqlite`."""
 
     root: Path
 
@@ -39,6 +40,11 @@ class BenchHome:
     @property
     def encoders(self) -> Path:
         return self.root / "encoders"
+
+    @property
+    def features(self) -> Path:
+        """Per-frame feature caches of frozen bases (`encoders/feature_cache.py`)."""
+        return self.root / "features"
 
     @property
     def experts(self) -> Path:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +20,9 @@ from typing import Any
 import mftcn_bench
 from mftcn_bench import registry
 from mftcn_bench.data.dataset import MultiViewDataset, check_dataset_config, ensure_dataset
-from mftcn_bench.encoders.base import Encoder, FitBudget
+from mftcn_bench.encoders.base import Encoder, FeatureCacheUser, FitBudget
+from mftcn_bench.encoders.bases import FrozenBase
+from mftcn_bench.encoders.feature_cache import ensure_feature_cache
 from mftcn_bench.errors import BenchError, SpecError
 from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.home import BenchHome
@@ -106,13 +108,34 @@ def _progress_bar(name: str, enabled: bool):
     return bar, report
 
 
-def encoder_workdir(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome) -> Path:
+def encoder_workdir(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
+                    base_identity: Mapping[str, Any] | None = None) -> Path:
     """The folder of the encoder this run fits or reuses: keyed by its resolved spec, the dataset's
-    fingerprint, the seed and the package version."""
+    fingerprint, the seed, the package version and, for a frozen base, the base's identity (its weights'
+    checksum)."""
     config = prepared.config["encoder"]
-    key = content_hash({"encoder": config, "dataset": dataset.fingerprint, "seed": prepared.request.seed,
-                        "version": mftcn_bench.__version__})
-    return home.encoders / f"{config['name']}-{key}"
+    keyed: dict[str, Any] = {"encoder": config, "dataset": dataset.fingerprint, "seed": prepared.request.seed,
+                             "version": mftcn_bench.__version__}
+    if base_identity is not None:
+        keyed["base"] = dict(base_identity)
+    return home.encoders / f"{config['name']}-{content_hash(keyed)}"
+
+
+def frozen_base_of(encoder: Encoder) -> FrozenBase | None:
+    """The encoder's frozen base when it declares one (the `FeatureCacheUser` capability)."""
+    return encoder.frozen_base() if isinstance(encoder, FeatureCacheUser) else None
+
+
+def attach_feature_cache(encoder: Encoder, dataset: MultiViewDataset, home: BenchHome,
+                         show_progress: bool = True) -> dict[str, Any] | None:
+    """Build (or find) the per-frame feature cache of the encoder's frozen base on `dataset` and hand it to
+    the encoder; returns what the run records about it (None: the encoder has no frozen base)."""
+    base = frozen_base_of(encoder)
+    if base is None or not isinstance(encoder, FeatureCacheUser):
+        return None
+    cache = ensure_feature_cache(home.features, dataset, base, base.identity(), show_progress=show_progress)
+    encoder.use_feature_cache(cache)
+    return {**cache.summary(), "base": base.identity()}
 
 
 def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
@@ -124,16 +147,22 @@ def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchH
     if not isinstance(encoder, Encoder):
         raise BenchError(f"encoder {spec.name!r} ({prepared.encoder_entry.entry_point.value}) does not "
                          f"implement the Encoder protocol (info, needs_fit, fit, embed, save, load)")
+    base = frozen_base_of(encoder)
     if not encoder.needs_fit:
-        return encoder, {"fitted": False, "reused": False}
-    workdir = encoder_workdir(prepared, dataset, home)
+        cache = attach_feature_cache(encoder, dataset, home, show_progress)
+        return encoder, {"fitted": False, "reused": False, **({} if cache is None else {"feature_cache": cache})}
+    workdir = encoder_workdir(prepared, dataset, home, None if base is None else base.identity())
     with exclusive_lock(home.encoders / f".{workdir.name}.lock"):  # concurrent runs fit it once
-        return encoder, _fit_or_load(encoder, spec, dataset, workdir, prepared.request.force, show_progress)
+        # A stored checkpoint is loaded (and refused if it cannot be) before the cache is built.
+        fit = _fit_or_load(encoder, spec, dataset, workdir, prepared.request.force, show_progress,
+                           before_fit=lambda: attach_feature_cache(encoder, dataset, home, show_progress))
+    cache = attach_feature_cache(encoder, dataset, home, show_progress)  # found, if the fit built it
+    return encoder, {**fit, **({} if cache is None else {"feature_cache": cache})}
 
 
 def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset, workdir: Path, force: bool,
-                 show_progress: bool) -> dict[str, Any]:
-    """Load the checkpoint in `workdir`, or fit (resuming a killed fit) and save it there."""
+                 show_progress: bool, before_fit: Callable[[], object] = lambda: None) -> dict[str, Any]:
+    """Load the checkpoint in `workdir`, or fit (resuming a killed fit, after `before_fit`) and save it."""
     model_path = workdir / "model.pt"
     if force and workdir.exists():
         shutil.rmtree(workdir)
@@ -145,6 +174,7 @@ def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset,
     workdir.mkdir(parents=True, exist_ok=True)
     for stale in workdir.glob(".*.tmp-*"):  # a checkpoint write cut off by a kill (we hold the lock): never read
         stale.unlink()
+    before_fit()
     train = dict(spec.train)
     budget = FitBudget(steps=int(train.get("steps", 0)), max_seconds=train.get("max_seconds") or None)
     bar, report = _progress_bar(spec.name, show_progress)

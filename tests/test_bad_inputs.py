@@ -37,7 +37,7 @@ TINY_TASK = ["--preset", "smoke", "--no-progress",
              "--set", "task.probe.batch_size=16"]
 # A tiny mfTCN: 8-channel convolutions, 2 training steps on 4 time steps from 2 episodes.
 TINY_MFTCN = ["--encoder", "mftcn1", *TINY_TASK,
-              "--set", "encoder.model.channels=[8, 8, 8, 8]", "--set", "encoder.model.temporal_channels=8",
+              "--set", "encoder.model.adapter_channels=8", "--set", "encoder.model.temporal_channels=8",
               "--set", "encoder.embedding_dim=8", "--set", "encoder.train.steps=2",
               "--set", "encoder.train.checkpoint_every=0", "--set", "encoder.train.batch_timesteps=4",
               "--set", "encoder.train.episodes_per_batch=2", "--set", "encoder.train.alpha=2",
@@ -431,7 +431,12 @@ def test_checkpoint_trained_at_another_resolution(capsys, finished):
 
     home = BenchHome.resolve(finished)
     prepared = prepare(RunRequest("mftcn1", "cartpole-probe", "smoke", 0, tuple(overrides)))
-    workdir = encoder_workdir(prepared, prepare_dataset(prepared, home, show_progress=False), home)
+    from mftcn_bench.specs import encoder_spec_from_config
+
+    spec = encoder_spec_from_config(prepared.encoder_entry.description, prepared.config["encoder"])
+    encoder = prepared.encoder_entry.load()(spec, image_shape=(32, 48), seed=0)
+    dataset = prepare_dataset(prepared, home, show_progress=False)
+    workdir = encoder_workdir(prepared, dataset, home, encoder.frozen_base().identity())
     workdir.mkdir(parents=True)
     shutil.copy(only(finished, "encoders/mftcn1-*/model.pt"), workdir / "model.pt")
     before = snapshot(finished)

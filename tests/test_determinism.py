@@ -19,7 +19,7 @@ TASK = ["--task", "cartpole-probe", "--preset", "smoke", "--no-progress",
         "--set", "task.dataset.test_episodes=1", "--set", "task.dataset.height=24", "--set", "task.dataset.width=48",
         "--set", "task.probe.epochs=10", "--set", "task.probe.batch_size=16", "--set", "task.probe.hidden=[32]"]
 MFTCN = ["--encoder", "mftcn1", *TASK, "--set", "encoder.train.steps=6", "--set", "encoder.train.checkpoint_every=0",
-         "--set", "encoder.model.channels=[8, 8, 8, 8]", "--set", "encoder.model.temporal_channels=8",
+         "--set", "encoder.model.adapter_channels=8", "--set", "encoder.model.temporal_channels=8",
          "--set", "encoder.train.batch_timesteps=4", "--set", "encoder.train.episodes_per_batch=2",
          "--set", "encoder.train.alpha=4", "--set", "encoder.train.episode_pool=3"]
 RANDOM = ["--encoder", "random-state", *TASK]

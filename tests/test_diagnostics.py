@@ -53,12 +53,14 @@ def smoke_home(tmp_path_factory):
     return tmp_path_factory.mktemp("home")
 
 
-@pytest.mark.parametrize(("encoder", "low", "high"), [("true-state", 0.7, 1.0), ("random-state", -1.0, 0.2)])
+@pytest.mark.parametrize(("encoder", "low", "high"), [("true-state", 0.6, 1.0), ("random-state", -1.0, 0.2)])
 def test_embedding_state_probe_tells_state_from_noise(smoke_home, encoder, low, high):
     done = run_probe(smoke_home, "--encoder", encoder, "--task", "swingup", "--preset", "smoke")
     assert done.returncode == 0, done.stderr
     mean = float(re.search(r"test split: mean R\^2 (-?[\d.]+)", done.stdout).group(1))
-    assert low <= mean <= high, done.stdout  # smoke: 600 train frames, so true state is not fitted exactly
+    # smoke: 600 train frames, one of its 6 episodes held out for early stopping, so true state is not fitted
+    # exactly (0.69 here); noise stays near or below 0
+    assert low <= mean <= high, done.stdout
 
 
 def run_probe(home, *args):

@@ -3,7 +3,9 @@ import pytest
 import torch
 
 from mftcn_bench.encoders.base import ClipBatch, embed_episode
-from mftcn_bench.encoders.inception import InceptionEncoder, InceptionV3ToMixed5d
+from mftcn_bench.encoders.bases import BaseConfig, InceptionV3Base
+from mftcn_bench.encoders.frozen_features import FrozenFeaturesEncoder as InceptionEncoder
+from mftcn_bench.encoders.inception import InceptionV3ToMixed5d
 from mftcn_bench.errors import BenchError, SpecError
 from mftcn_bench.registry import get
 from mftcn_bench.specs import EncoderSpec
@@ -23,8 +25,9 @@ TORCHVISION_SHAPES = {
 
 
 def spec(weights="", input_size=75, **changes):
-    data = {"family": "inception", "description": "test", "frames": 1, "stride": 1, "embedding_dim": 288,
-            "model": {"weights": str(weights), "input_size": input_size, "batch_size": 4}, "train": {}}
+    data = {"family": "frozen-base", "description": "test", "frames": 1, "stride": 1, "embedding_dim": 288,
+            "model": {"base": {"name": "inception-v3", "weights": str(weights), "input_size": input_size}},
+            "train": {}}
     data.update(changes)
     return EncoderSpec.from_dict("inception", data)
 
@@ -92,7 +95,10 @@ def test_preprocessing_equals_torchvision_normalize_then_transform_input(tmp_pat
     x = (images.float() / 255 - mean.view(1, 3, 1, 1)) / std.view(1, 3, 1, 1)  # transforms.Normalize
     x = x * (std / 0.5).view(1, 3, 1, 1) + ((mean - 0.5) / 0.5).view(1, 3, 1, 1)  # Inception3._transform_input
     x = torch.nn.functional.interpolate(x, size=(75, 75), mode="bilinear", align_corners=False)
-    assert torch.allclose(encoder.preprocess(images), x, atol=1e-5)
+    base = encoder.frozen_base().net
+    assert isinstance(base, InceptionV3Base)
+    with torch.no_grad():
+        assert torch.allclose(base(images), base.net(x), atol=1e-4)
 
 
 def test_missing_weights_say_where_to_put_the_file(tmp_path):
@@ -100,8 +106,8 @@ def test_missing_weights_say_where_to_put_the_file(tmp_path):
         InceptionEncoder(spec(""), (24, 40), 0)
     message = str(empty.value)
     assert "\n" not in message
-    for part in ("encoder.model.weights", "inception_v3 IMAGENET1K_V1 state_dict",
-                 "mftcn-bench run --encoder inception --set encoder.model.weights="):
+    for part in ("encoder.model.base.weights", "inception_v3 IMAGENET1K_V1 state_dict",
+                 "mftcn-bench run --encoder inception --set encoder.model.base.weights="):
         assert part in message
     with pytest.raises(BenchError, match="weights file .*nothere.pth not found.*IMAGENET1K_V1"):
         InceptionEncoder(spec(tmp_path / "nothere.pth"), (24, 40), 0)
@@ -117,8 +123,10 @@ def test_a_wrong_file_is_one_line(tmp_path):
 
 
 def test_spec_validation():
-    with pytest.raises(SpecError, match="bad \\[model\\] table"):
-        InceptionEncoder(spec(model={"weights": "", "bogus": 1}), (24, 40), 0)
+    with pytest.raises(SpecError, match="bad \\[model.base\\] table"):
+        InceptionEncoder(spec(model={"base": {"name": "inception-v3", "bogus": 1}}), (24, 40), 0)
+    with pytest.raises(SpecError, match="input_size must be >= 75"):
+        BaseConfig(name="inception-v3", input_size=50)
     with pytest.raises(SpecError, match="embedding_dim 288"):
         InceptionEncoder(spec(embedding_dim=32), (24, 40), 0)
     with pytest.raises(SpecError, match="\\[train\\] table must be empty"):
@@ -127,7 +135,7 @@ def test_spec_validation():
 
 def test_registered_spec_needs_weights():
     entry = get("encoders", "inception")
-    assert entry.spec.embedding_dim == 288 and entry.spec.model["input_size"] == 299
-    with pytest.raises(BenchError, match="encoder.model.weights"):
+    assert entry.spec.embedding_dim == 288 and entry.spec.model["base"]["input_size"] == 299
+    with pytest.raises(BenchError, match="encoder.model.base.weights"):
         entry.load()(entry.spec, image_shape=(48, 96), seed=0)
 

@@ -126,7 +126,7 @@ def test_killed_dataset_collection_resumes_from_its_finished_chunks(tmp_path):
 def test_killed_encoder_training_resumes_from_its_checkpoint(tmp_path):
     home = tmp_path / "home"
     args = ["run", "--encoder", "mftcn1", *SMALL, "--set", "encoder.train.steps=60",
-            "--set", "encoder.train.checkpoint_every=5", "--set", "encoder.model.channels=[16, 16, 16, 16]",
+            "--set", "encoder.train.checkpoint_every=5", "--set", "encoder.model.adapter_channels=16",
             "--set", "encoder.model.temporal_channels=16", "--set", "encoder.train.batch_timesteps=8"]
     synthetic_dataset(home, args)
     kill_when(home, args, lambda: bool(list(home.glob("encoders/mftcn1-*/train_checkpoint.pt"))))
@@ -212,7 +212,7 @@ sys.exit(main(sys.argv[1:]))
 def test_four_concurrent_runs_share_one_dataset_and_lose_no_row(tmp_path):
     home, log = tmp_path / "home", tmp_path / "collect.log"
     tiny_mftcn = ["--encoder", "mftcn1", "--set", "encoder.train.steps=4", "--set", "encoder.train.checkpoint_every=0",
-                  "--set", "encoder.model.channels=[8, 8, 8, 8]", "--set", "encoder.model.temporal_channels=8",
+                  "--set", "encoder.model.adapter_channels=8", "--set", "encoder.model.temporal_channels=8",
                   "--set", "encoder.train.batch_timesteps=8"]
     jobs = [  # two runs share one trained encoder (same spec, data, seed): it is fitted once
         [*tiny_mftcn, *SMALL],

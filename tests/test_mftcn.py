@@ -11,7 +11,8 @@ from mftcn_bench.errors import TrainingError
 from mftcn_bench.specs import EncoderSpec
 from tests.synthetic import synthetic_collector, synthetic_config
 
-MODEL = {"channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "temporal_channels": 8, "coords": True}
+SMALL_CNN = {"name": "small-cnn", "channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "coords": True}
+MODEL = {"adapter_channels": 8, "temporal_channels": 8, "base": SMALL_CNN}
 TRAIN = {"steps": 6, "batch_timesteps": 4, "episodes_per_batch": 2, "alpha": 2, "lr": 1e-3,
          "weight_decay": 1e-6, "reg_lambda": 0.002, "episode_pool": 2, "pool_refresh_steps": 2,
          "checkpoint_every": 2, "max_seconds": 0.0}

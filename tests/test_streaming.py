@@ -7,7 +7,8 @@ from mftcn_bench.encoders.streaming import StreamingEmbedder
 from mftcn_bench.specs import EncoderSpec
 
 SHAPE = (16, 24)
-MODEL = {"channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "temporal_channels": 8, "coords": True}
+MODEL = {"adapter_channels": 8, "temporal_channels": 8,
+         "base": {"name": "small-cnn", "channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "coords": True}}
 TRAIN = {"steps": 1, "batch_timesteps": 4, "episodes_per_batch": 2, "alpha": 2, "lr": 1e-3,
          "weight_decay": 1e-6, "reg_lambda": 0.002, "episode_pool": 2, "pool_refresh_steps": 2,
          "checkpoint_every": 0, "max_seconds": 0.0}

@@ -15,8 +15,8 @@ from mftcn_bench.registry import get
 from mftcn_bench.specs import EncoderSpec
 from tests.synthetic import synthetic_config
 
-MODEL = {"channels": [8, 8], "kernels": [3, 3], "strides": [2, 1], "coords": False, "hidden": [],
-         "temperature": 1.0, "learn_temperature": True}
+MODEL = {"conv_channels": [], "hidden": [], "temperature": 1.0, "learn_temperature": True,
+         "base": {"name": "small-cnn", "channels": [8, 8], "kernels": [3, 3], "strides": [2, 1], "coords": False}}
 TRAIN = {"loss": "npairs", "steps": 6, "batch_timesteps": 8, "episodes_per_batch": 2, "alpha": 2, "lr": 3e-3,
          "weight_decay": 1e-6, "reg_lambda": 0.002, "episode_pool": 3, "pool_refresh_steps": 0,
          "checkpoint_every": 0, "max_seconds": 0.0, "positive_radius": 2, "negative_margin": 6, "margin": 0.2}
@@ -95,7 +95,8 @@ def test_spec_errors_are_one_line():
 def test_registered_spec_builds():
     entry = get("encoders", "tcn")
     encoder = entry.load()(entry.spec, image_shape=(48, 96), seed=0)
-    assert encoder.model_config.coords is False and encoder.tcn_train_config.loss == "npairs"
+    assert encoder.model_config.base.name == "efficientnet-lite0" and encoder.tcn_train_config.loss == "npairs"
+    assert encoder.frozen_base() is not None and encoder.model_config.conv_channels == [128, 128]
     assert encoder.tcn_train_config.positive_radius == 6 and encoder.tcn_train_config.negative_margin == 12
 
 

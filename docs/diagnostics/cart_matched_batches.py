@@ -31,10 +31,13 @@ from sklearn.neural_network import MLPRegressor
 
 from mftcn_bench import registry
 from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.encoders.common import parse_table
 from mftcn_bench.encoders.losses import multiview_npairs_loss
 from mftcn_bench.encoders.mftcn import MfTCNModelConfig, MfTCNNet
 
+
+def from_scratch(model: dict) -> MfTCNModelConfig:
+    """mftcn1's [model] with the from-scratch small-cnn base: the design this diagnostic was written for."""
+    return MfTCNModelConfig.from_table("mftcn1", {**model, "base": {"name": "small-cnn"}})
 
 def load_split(dataset: MultiViewDataset, split: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """All frames of a split: [views, N, H, W, 3], states [N, 4], episode of each frame, time of each frame."""
@@ -77,7 +80,7 @@ def main() -> None:
 
     spec = registry.get("encoders", "mftcn1").spec
     train = dict(spec.train)
-    net = MfTCNNet(parse_table(MfTCNModelConfig, "mftcn1", "model", spec.model), frames=1,
+    net = MfTCNNet(from_scratch(spec.model), frames=1,
                    embedding_dim=spec.embedding_dim)
     opt = torch.optim.Adam(net.parameters(), lr=train["lr"], weight_decay=train["weight_decay"])
     dataset = MultiViewDataset(args.dataset)

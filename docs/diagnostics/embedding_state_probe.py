@@ -36,13 +36,15 @@ from mftcn_bench.runner import PreparedRun, RunRequest, build_encoder, prepare, 
 from mftcn_bench.tasks.probe import ProbeConfig, probe_features, probe_regressor
 
 
-def features(encoder: Encoder, episodes: Iterable[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    """Probe features and state targets of every frame of (frames of one view, states) episodes."""
-    xs, ys = [], []
-    for frames, state in episodes:
+def features(encoder: Encoder, episodes: Iterable[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, ...]:
+    """Probe features, state targets and episode numbers of every frame of (frames of one view, states)
+    episodes."""
+    xs, ys, names = [], [], []
+    for number, (frames, state) in enumerate(episodes):
         xs.append(probe_features(embed_episode(encoder, frames, state)))
         ys.append(state_embedding(state))
-    return np.concatenate(xs), np.concatenate(ys)
+        names.append(np.full(len(state), number))
+    return np.concatenate(xs), np.concatenate(ys), np.concatenate(names)
 
 
 class UniformPolicy:
@@ -87,21 +89,21 @@ def main() -> None:
     encoder, _ = build_encoder(prepared, dataset, home, show_progress=False)
     camera = prepared.config["task"]["env"]["camera"]
     view = dataset.cameras.index(camera)
-    x_train, y_train = features(encoder, ((e.frames[view], e.state) for e in dataset.iter_episodes("train")))
-    x_test, y_test = features(encoder, ((e.frames[view], e.state) for e in dataset.iter_episodes("test")))
+    x_train, y_train, groups = features(encoder, ((e.frames[view], e.state) for e in dataset.iter_episodes("train")))
+    x_test, y_test, _ = features(encoder, ((e.frames[view], e.state) for e in dataset.iter_episodes("test")))
 
     probe = ProbeConfig(**registry.get("tasks", "cartpole-probe").spec.tables["probe"])
     scale = StandardScaler().fit(y_train)
     regressor = probe_regressor(probe, args.seed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        regressor.fit(x_train, scale.transform(y_train))
+        regressor.fit(x_train, scale.transform(y_train), groups)
     print(f"{args.encoder} on {args.task} ({prepared.preset}): camera {camera!r}, {len(x_train)} train and "
           f"{len(x_test)} test frames, {y_train.shape[1]} state dimensions")
     report("test split", scale.transform(y_test), regressor.predict(x_test))
     if randomised is not None:  # episode indices past the dataset's, so other initial states
         episodes = (randomised(dataset.config, 1_000_000 + i) for i in range(args.random_episodes))
-        x_random, y_random = features(encoder, ((e["frames"][view], e["state"]) for e in episodes))
+        x_random, y_random, _ = features(encoder, ((e["frames"][view], e["state"]) for e in episodes))
         report(f"{args.random_episodes} random-action episodes ({len(x_random)} frames)",
                scale.transform(y_random), regressor.predict(x_random))
 

@@ -20,9 +20,12 @@ import torch
 
 from mftcn_bench import registry
 from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.encoders.common import parse_table
 from mftcn_bench.encoders.mftcn import MfTCNModelConfig, MfTCNNet
 
+
+def from_scratch(model: dict) -> MfTCNModelConfig:
+    """mftcn1's [model] with the from-scratch small-cnn base: the design this diagnostic was written for."""
+    return MfTCNModelConfig.from_table("mftcn1", {**model, "base": {"name": "small-cnn"}})
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -44,7 +47,7 @@ def main() -> None:
         theta = np.concatenate([e.state[:, 1] for e in episodes])
         splits[split] = (frames, np.stack([np.sin(theta), np.cos(theta)], 1).astype(np.float32))
     spec = registry.get("encoders", "mftcn1").spec
-    net = MfTCNNet(parse_table(MfTCNModelConfig, "mftcn1", "model", spec.model), frames=1, embedding_dim=2)
+    net = MfTCNNet(from_scratch(spec.model), frames=1, embedding_dim=2)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
 
     def tensors(split: str, index: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:

@@ -11,13 +11,17 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.errors import BenchError
+
+if TYPE_CHECKING:
+    from mftcn_bench.encoders.bases import FrozenBase
+    from mftcn_bench.encoders.feature_cache import FeatureCache
 
 
 @dataclass(frozen=True)
@@ -81,6 +85,21 @@ class Encoder(Protocol):
     def save(self, path: Path) -> None: ...
 
     def load(self, path: Path) -> None: ...
+
+
+@runtime_checkable
+class FeatureCacheUser(Protocol):
+    """Optional capability: an encoder on a frozen per-frame base whose features the harness caches.
+
+    Before `fit` and evaluation the runner builds (or finds) the cache of `frozen_base()` on the run's
+    dataset and hands it over with `use_feature_cache`; the encoder then reads base features from it
+    instead of running the base on frames it holds."""
+
+    def frozen_base(self) -> FrozenBase | None:
+        """The frozen base, or None when this encoder's base trains (then nothing is cached)."""
+        ...
+
+    def use_feature_cache(self, cache: FeatureCache) -> None: ...
 
 
 def embed_episode(encoder: Encoder, frames: np.ndarray, state: np.ndarray | None = None,

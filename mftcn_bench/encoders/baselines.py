@@ -24,9 +24,9 @@ import torch
 from torch import nn
 
 from mftcn_bench.encoders.base import ClipBatch
+from mftcn_bench.encoders.bases import SmallCNN
 from mftcn_bench.encoders.common import FrameHeadEncoder, SpecEncoder, load_payload, parse_table, save_payload
 from mftcn_bench.encoders.frame_cnn import CNNConfig
-from mftcn_bench.encoders.mftcn import BaseCNN
 from mftcn_bench.errors import BenchError, SpecError
 from mftcn_bench.specs import EncoderSpec
 from mftcn_bench.tasks.probe import state_targets
@@ -157,12 +157,12 @@ class TrueStateEncoder(SpecEncoder):
 
 
 class PixelsCNNNet(nn.Module):
-    """uint8 clips [B, n, 3, H, W] -> [B, D]: per-frame BaseCNN and spatial average, the n feature
+    """uint8 clips [B, n, 3, H, W] -> [B, D]: per-frame SmallCNN and spatial average, the n feature
     vectors concatenated, one linear layer."""
 
     def __init__(self, config: CNNConfig, frames: int, embedding_dim: int) -> None:
         super().__init__()
-        self.base = BaseCNN(config.base_config())
+        self.base = SmallCNN(config.base_config())
         self.fc = nn.Linear(frames * self.base.out_channels, embedding_dim)
 
     def frame_features(self, images: torch.Tensor) -> torch.Tensor:

@@ -1,7 +1,7 @@
 """Frame-CNN pieces shared by the single-frame encoders (pixels-cnn, PVE, Shuffle and Learn).
 
 - `CNNConfig`: the convolution part of a `[model]` table (the mfTCN base CNN's layers).
-- `FrameNet`: the mfTCN base CNN (`BaseCNN`, with its optional coordinate channels), a spatial average
+- `FrameNet`: the from-scratch base CNN (`bases.SmallCNN`, with its optional coordinate channels), a spatial average
   and a linear layer: one uint8 frame -> a vector.
 - `SingleViewTrainConfig` / `train_single_view`: Adam on a loss computed from a pool of decoded train
   episodes (the mfTCN trainer's `EpisodePool`), with the same atomic checkpoints and bitwise resume as
@@ -20,7 +20,7 @@ from torch import nn
 
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
-from mftcn_bench.encoders.mftcn import BaseCNN, MfTCNModelConfig
+from mftcn_bench.encoders.bases import BaseConfig, SmallCNN
 from mftcn_bench.encoders.training import BatchLoss, run_training
 from mftcn_bench.errors import SpecError
 
@@ -38,18 +38,18 @@ class CNNConfig:
         if not (len(self.channels) == len(self.kernels) == len(self.strides) >= 1):
             raise SpecError("[model]: channels, kernels and strides must be lists of one length")
 
-    def base_config(self) -> MfTCNModelConfig:
-        """The mfTCN model config that `BaseCNN` reads (it uses only the convolution fields)."""
-        return MfTCNModelConfig(list(self.channels), list(self.kernels), list(self.strides),
-                                temporal_channels=0, coords=self.coords)
+    def base_config(self) -> BaseConfig:
+        """The `small-cnn` base of these layers."""
+        return BaseConfig(name="small-cnn", channels=list(self.channels), kernels=list(self.kernels),
+                          strides=list(self.strides), coords=self.coords)
 
 
 class FrameNet(nn.Module):
-    """uint8 frames [N, 3, H, W] -> [N, out_dim]: BaseCNN, spatial average, linear layer."""
+    """uint8 frames [N, 3, H, W] -> [N, out_dim]: SmallCNN, spatial average, linear layer."""
 
     def __init__(self, config: CNNConfig, out_dim: int) -> None:
         super().__init__()
-        self.base = BaseCNN(config.base_config())
+        self.base = SmallCNN(config.base_config())
         self.fc = nn.Linear(self.base.out_channels, out_dim)
 
     def pooled(self, images: torch.Tensor) -> torch.Tensor:

@@ -1,5 +1,9 @@
-"""Single-frame Time-Contrastive Network (TCN, Sermanet et al.): base CNN, spatial soft-argmax, fully
-connected layer to the embedding.
+"""Single-frame Time-Contrastive Network (TCN, Sermanet et al.) as the TCN code builds it: a base (by
+default the same frozen ImageNet EfficientNet-Lite0 as mfTCN, `[model.base]`), trainable 3x3 convolutions
+with BatchNorm and ReLU (`conv_channels`; the code's `additional_conv_sizes`), a spatial soft-argmax, fully
+connected layers (`hidden`; the code's `fc_hidden_sizes`) and a linear layer to the embedding. TCN and
+mfTCN differ where the paper says: one frame and a soft-argmax against a 3D convolution over n frames and
+a spatial average.
 
 The spatial soft-argmax turns each feature map into the expected image position of its activation: a
 softmax over the map's H*W positions (features divided by a temperature, learned by default as in
@@ -16,9 +20,9 @@ Training, chosen by `[train] loss`:
   is L2-normalised at inference too. `batch_timesteps` is the number of triplets a batch;
   `alpha` and `reg_lambda` are used by n-pairs only.
 
-The encoder reuses mfTCN's construction, embedding, checkpoint and streaming code (`MfTCNEncoder`, with
-its own `configure` / `build_net`): the network has the same `frame_features` / `head` split, with a head
-that reads the clip's single frame.
+The encoder reuses mfTCN's construction, embedding, feature cache, checkpoint and streaming code
+(`MfTCNEncoder`, with its own `configure` / `build_net`): the network is an `OnBaseNet` whose head reads
+the clip's single frame.
 """
 
 from __future__ import annotations
@@ -35,12 +39,15 @@ from torch import nn
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
+from mftcn_bench.encoders.bases import BaseConfig, base_channels, build_base
 from mftcn_bench.encoders.common import check_image_shape, parse_table
-from mftcn_bench.encoders.mftcn import BaseCNN, MfTCNEncoder, MfTCNModelConfig
+from mftcn_bench.encoders.feature_cache import FeatureCache
+from mftcn_bench.encoders.mftcn import MfTCNEncoder, OnBaseNet, frame_adapter, parse_base
 from mftcn_bench.encoders.training import (
     ContrastiveTrainConfig,
     EpisodePool,
     run_training,
+    views_of,
 )
 from mftcn_bench.errors import DataError, SpecError
 from mftcn_bench.specs import EncoderSpec
@@ -52,25 +59,24 @@ LOSSES = ("npairs", "triplet")
 class TCNModelConfig:
     """The `[model]` table of a TCN spec."""
 
-    channels: list[int]
-    kernels: list[int]
-    strides: list[int]
-    coords: bool = False
+    base: BaseConfig
+    conv_channels: list[int] = field(default_factory=list)  # trainable 3x3 conv + BN + ReLU layers on the base
     hidden: list[int] = field(default_factory=list)  # widths of ReLU layers between soft-argmax and output
     temperature: float = 1.0
     learn_temperature: bool = True
 
     def __post_init__(self) -> None:
-        self.base_config()  # validates the convolution lists
         if not self.temperature > 0:
             raise SpecError(f"TCN [model]: temperature must be > 0, got {self.temperature}")
-        if any(int(width) < 1 for width in self.hidden):
-            raise SpecError(f"TCN [model]: hidden layer widths must be >= 1, got {self.hidden}")
+        if any(int(width) < 1 for width in [*self.hidden, *self.conv_channels]):
+            raise SpecError(f"TCN [model]: hidden and conv_channels widths must be >= 1, got {self.hidden} and "
+                            f"{self.conv_channels}")
 
-    def base_config(self) -> MfTCNModelConfig:
-        """The base CNN's configuration (the temporal width is unused by `BaseCNN`)."""
-        return MfTCNModelConfig(list(self.channels), list(self.kernels), list(self.strides),
-                                temporal_channels=0, coords=self.coords)
+    @classmethod
+    def from_table(cls, encoder: str, table: dict[str, Any]) -> TCNModelConfig:
+        table = dict(table)
+        base = parse_base(encoder, table.pop("base", {}))
+        return parse_table(cls, encoder, "model", {**table, "base": base})
 
 
 @dataclass(frozen=True)
@@ -141,35 +147,28 @@ class SpatialSoftArgmax(nn.Module):
         return spatial_soft_argmax(features, self.temperature)
 
 
-class TCNNet(nn.Module):
+class TCNNet(OnBaseNet):
     """One-frame clip [B, 1, 3, H, W] (uint8) -> embedding [B, D]."""
 
     def __init__(self, config: TCNModelConfig, embedding_dim: int, l2_normalize: bool = False) -> None:
         super().__init__()
         self.l2_normalize = l2_normalize
-        self.base = BaseCNN(config.base_config())
+        self.base = build_base(config.base)
+        channels = base_channels(self.base)
+        self.adapter = frame_adapter(channels, [int(c) for c in config.conv_channels])
         self.keypoints = SpatialSoftArgmax(config.temperature, config.learn_temperature)
         layers: list[nn.Module] = []
-        previous = 2 * self.base.out_channels
+        previous = 2 * (int(config.conv_channels[-1]) if config.conv_channels else channels)
         for width in config.hidden:
             layers += [nn.Linear(previous, int(width)), nn.ReLU()]
             previous = int(width)
         layers.append(nn.Linear(previous, embedding_dim))
         self.fc = nn.Sequential(*layers)
 
-    def frame_features(self, images: torch.Tensor) -> torch.Tensor:
-        """uint8 [N, 3, H, W] -> base-CNN feature maps [N, C, h, w]."""
-        return self.base(images)
-
     def head(self, features: torch.Tensor) -> torch.Tensor:
         """Per-frame features of one-frame clips [B, 1, C, h, w] -> embeddings [B, D]."""
         out = self.fc(self.keypoints(features[:, -1]))
         return F.normalize(out, dim=1) if self.l2_normalize else out
-
-    def forward(self, clips: torch.Tensor) -> torch.Tensor:
-        b, n = clips.shape[:2]
-        features = self.frame_features(clips.reshape(b * n, *clips.shape[2:]))
-        return self.head(features.reshape(b, n, *features.shape[1:]))
 
 
 def triplet_loss(anchors: torch.Tensor, positives: torch.Tensor, negatives: torch.Tensor,
@@ -220,21 +219,23 @@ def sample_triplets(rng: np.random.Generator, episodes: list[int], lengths: dict
 
 
 def gather_triplets(pool: EpisodePool, plan: TripletPlan, frames: int, stride: int) -> np.ndarray:
-    """uint8 [3, K, n, H, W, 3]: anchor, positive and negative clips of each planned triplet."""
+    """[3, K, n, ...]: anchor, positive and negative clips of each planned triplet (uint8 frames, or base
+    features for a pool of cached features)."""
     out = []
     for times in (plan.anchors, plan.positives, plan.negatives):
         index = clip_indices(times, frames, stride)
-        out.append(np.stack([pool.episodes[int(e)].frames[int(v), idx]
+        out.append(np.stack([views_of(pool.episodes[int(e)])[int(v), idx]
                              for e, v, idx in zip(plan.episodes, plan.views, index, strict=True)]))
     return np.stack(out)
 
 
-def train_triplet(net: nn.Module, dataset: MultiViewDataset, config: TCNTrainConfig, budget: FitBudget,
+def train_triplet(net: OnBaseNet, dataset: MultiViewDataset, config: TCNTrainConfig, budget: FitBudget,
                   progress: ProgressFn, workdir: Path, *, frames: int, stride: int,
-                  seed: int) -> dict[str, float]:
+                  seed: int, features: FeatureCache | None = None) -> dict[str, float]:
     """Train `net` with the single-view triplet loss; returns {'final_loss', 'steps', 'seconds'}.
 
-    Same pool, optimizer and checkpoint/resume scheme as `train_multiview`."""
+    Same pool, optimizer and checkpoint/resume scheme as `train_multiview`; with `features`, on cached base
+    features."""
     base = config.base
     shortest = min(dataset.episode_length(i) for i in dataset.episodes("train"))
     if shortest < config.negative_margin + 2:
@@ -242,17 +243,22 @@ def train_triplet(net: nn.Module, dataset: MultiViewDataset, config: TCNTrainCon
                         f"{config.negative_margin + 2} frames; the shortest train episode has {shortest}")
     views = len(dataset.cameras)
 
+    def embed(batch: np.ndarray) -> torch.Tensor:
+        if features is None:
+            return net(torch.from_numpy(batch).permute(0, 1, 4, 2, 3))
+        return net.head_on_base(torch.from_numpy(batch))
+
     def batch_loss(pool: EpisodePool, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, float]]:
-        lengths = {i: ep.length for i, ep in pool.episodes.items()}
+        lengths = {i: pool.length(i) for i in pool.episodes}
         plan = sample_triplets(rng, sorted(pool.episodes), lengths, views, base.batch_timesteps,
                                base.episodes_per_batch, config.positive_radius, config.negative_margin)
         clips = gather_triplets(pool, plan, frames, stride)
         count = clips.shape[1]
-        batch = torch.from_numpy(clips.reshape(3 * count, *clips.shape[2:])).permute(0, 1, 4, 2, 3)
-        anchors, positives, negatives = net(batch).reshape(3, count, -1)
+        anchors, positives, negatives = embed(clips.reshape(3 * count, *clips.shape[2:])).reshape(3, count, -1)
         return triplet_loss(anchors, positives, negatives, config.margin), {}
 
-    return run_training(net, dataset, base, budget, progress, workdir, seed=seed, batch_loss=batch_loss)
+    return run_training(net, dataset, base, budget, progress, workdir, seed=seed, batch_loss=batch_loss,
+                        load=None if features is None else features.load)
 
 
 class TCNEncoder(MfTCNEncoder):
@@ -261,11 +267,11 @@ class TCNEncoder(MfTCNEncoder):
     def configure(self, spec: EncoderSpec) -> None:
         if spec.frames != 1:
             raise SpecError(f"encoder {spec.name!r} is single-frame TCN: frames must be 1, got {spec.frames}")
-        self.model_config = parse_table(TCNModelConfig, spec.name, "model", spec.model)
+        self.model_config = TCNModelConfig.from_table(spec.name, dict(spec.model))
         self.tcn_train_config = TCNTrainConfig.from_table(spec.name, dict(spec.train))
         self.train_config = self.tcn_train_config.base
 
-    def build_net(self) -> nn.Module:
+    def build_net(self) -> OnBaseNet:
         triplet = self.tcn_train_config.loss == "triplet"
         return TCNNet(self.model_config, self.spec.embedding_dim, l2_normalize=triplet)
 
@@ -275,4 +281,5 @@ class TCNEncoder(MfTCNEncoder):
             return super().fit(dataset, budget, progress, workdir)
         check_image_shape(self.image_shape, dataset)
         return train_triplet(self.net, dataset, self.tcn_train_config, budget, progress, workdir,
-                             frames=self.spec.frames, stride=self.spec.stride, seed=self.seed)
+                             frames=self.spec.frames, stride=self.spec.stride, seed=self.seed,
+                             features=self.training_features())

@@ -1,7 +1,8 @@
 """Training loop for multi-view time-contrastive encoders (mfTCN, TCN): sample, embed, n-pairs, Adam.
 
-Batches come from a pool of decoded train episodes that is refreshed one episode at a time, so the
-loader never decompresses a chunk per step. Checkpoints (model, optimizer, step, random states) are
+Batches come from a pool of train episodes that is refreshed one episode at a time: decoded frames, or,
+for a head on a frozen base, the episodes' cached base features (memory-mapped), so the loader never
+decompresses a chunk per step and a head never runs its base. Checkpoints (model, optimizer, step, random states) are
 written atomically every `checkpoint_every` steps; `fit` resumes from the last one after a kill.
 """
 
@@ -12,7 +13,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -21,6 +22,7 @@ from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import Episode, MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
 from mftcn_bench.encoders.common import load_failure, parse_table, save_payload
+from mftcn_bench.encoders.feature_cache import FeatureCache
 from mftcn_bench.encoders.losses import multiview_npairs_loss
 from mftcn_bench.encoders.sampling import plan_batch
 from mftcn_bench.errors import SpecError, TrainingError
@@ -47,16 +49,28 @@ class ContrastiveTrainConfig:
         return parse_table(cls, name, "train", table)
 
 
+# What a pool holds per episode: the decoded episode, or its per-frame arrays [views, T, ...] (features).
+PoolItem = Episode | np.ndarray
+EpisodeLoader = Callable[[int], PoolItem]
+
+
+def views_of(item: PoolItem) -> np.ndarray:
+    """The per-view, per-frame array [views, T, ...] of a pool item: frames or base features."""
+    return item.frames if isinstance(item, Episode) else item
+
+
 class EpisodePool:
-    """A few decoded train episodes; every `refresh_steps` one of them is swapped for another."""
+    """A few train episodes (decoded by `load`, by default `dataset.load`); every `refresh_steps` one of
+    them is swapped for another."""
 
     def __init__(self, dataset: MultiViewDataset, size: int, refresh_steps: int, rng: np.random.Generator,
-                 members: list[int] | None = None):
+                 members: list[int] | None = None, load: EpisodeLoader | None = None):
         self.dataset, self.refresh_steps, self.rng = dataset, refresh_steps, rng
+        self.load: EpisodeLoader = load or dataset.load
         self.train = dataset.episodes("train")
         self.size = min(size, len(self.train))
         picked = members if members is not None else rng.choice(self.train, size=self.size, replace=False)
-        self.episodes: dict[int, Episode] = {int(i): dataset.load(int(i)) for i in picked}
+        self.episodes: dict[int, Any] = {int(i): self.load(int(i)) for i in picked}
 
     def step(self, step: int) -> None:
         if self.refresh_steps <= 0 or step == 0 or step % self.refresh_steps or self.size == len(self.train):
@@ -65,14 +79,18 @@ class EpisodePool:
         drop = int(self.rng.choice(sorted(self.episodes)))
         add = int(self.rng.choice(outside))
         del self.episodes[drop]
-        self.episodes[add] = self.dataset.load(add)
+        self.episodes[add] = self.load(add)
+
+    def length(self, episode: int) -> int:
+        return int(views_of(self.episodes[episode]).shape[1])
 
 
 def gather_clips(pool: EpisodePool, episodes: np.ndarray, times: np.ndarray, frames: int,
                  stride: int) -> np.ndarray:
-    """uint8 [views, K, n, H, W, 3]: the clip of every view at each (episode, time)."""
+    """[views, K, n, ...]: the clip of every view at each (episode, time): uint8 frames [H, W, 3] per
+    clip frame, or base features [C, h, w] for a pool of cached features."""
     index = clip_indices(times, frames, stride)
-    rows = [pool.episodes[int(e)].frames[:, idx] for e, idx in zip(episodes, index, strict=True)]
+    rows = [views_of(pool.episodes[int(e)])[:, idx] for e, idx in zip(episodes, index, strict=True)]
     return np.stack(rows, axis=1)
 
 
@@ -99,7 +117,8 @@ BatchLoss = Callable[[EpisodePool, np.random.Generator], tuple[torch.Tensor, dic
 
 
 def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopConfig, budget: FitBudget,
-                 progress: ProgressFn, workdir: Path, *, seed: int, batch_loss: BatchLoss) -> dict[str, float]:
+                 progress: ProgressFn, workdir: Path, *, seed: int, batch_loss: BatchLoss,
+                 load: EpisodeLoader | None = None) -> dict[str, float]:
     """Adam on `batch_loss` for `budget.steps` steps, drawing batches from a pool of train episodes.
 
     Checkpoints (model, optimizer, step, pool members, random states) go to `workdir/train_checkpoint.pt`
@@ -111,7 +130,8 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
                         f"got {config.lr} and {config.weight_decay}")
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
-    opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    trainable = [p for p in net.parameters() if p.requires_grad]  # a frozen base has none
+    opt = torch.optim.Adam(trainable, lr=config.lr, weight_decay=config.weight_decay)
     workdir.mkdir(parents=True, exist_ok=True)
     checkpoint = workdir / "train_checkpoint.pt"
     start, members = 0, None
@@ -126,7 +146,7 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
         start, members = int(state["step"]), [int(i) for i in state["pool"]]
         torch.set_rng_state(state["torch_rng"])
         rng.bit_generator.state = json.loads(state["numpy_rng"])
-    pool = EpisodePool(dataset, config.episode_pool, config.pool_refresh_steps, rng, members)
+    pool = EpisodePool(dataset, config.episode_pool, config.pool_refresh_steps, rng, members, load)
     net.train()
     began, loss_value, done = time.monotonic(), float("nan"), start
     for step in range(start, budget.steps):
@@ -150,10 +170,18 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
             "resumed_from_step": float(start)}
 
 
+@runtime_checkable
+class BaseFeatureHead(Protocol):
+    """A clip network that can embed clips of cached base features [B, n, C, h, w]."""
+
+    def head_on_base(self, features: torch.Tensor) -> torch.Tensor: ...
+
+
 def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: ContrastiveTrainConfig,
                     budget: FitBudget, progress: ProgressFn, workdir: Path, *, frames: int, stride: int,
-                    seed: int) -> dict[str, float]:
-    """Train `net` (uint8 clips [B, n, 3, H, W] -> [B, D]) with multi-view n-pairs."""
+                    seed: int, features: FeatureCache | None = None) -> dict[str, float]:
+    """Train `net` (uint8 clips [B, n, 3, H, W] -> [B, D]) with multi-view n-pairs; with `features`, on clips
+    of cached base features through `net.head_on_base` (a `BaseFeatureHead`) instead of frames."""
     if len(dataset.cameras) < 2:
         raise SpecError("time-contrastive training needs a dataset with at least two camera views")
     lookback = (frames - 1) * stride + 1
@@ -162,15 +190,26 @@ def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: Con
         raise SpecError(f"lookback of {lookback} frames is longer than the shortest train episode "
                         f"({shortest} frames); use a smaller frames/stride or longer episodes")
     min_gap = max(config.alpha, lookback)
+    load: EpisodeLoader | None = None
+    if features is None:
+        def embed(batch: np.ndarray) -> torch.Tensor:
+            return net(torch.from_numpy(batch).permute(0, 1, 4, 2, 3))
+    else:
+        if not isinstance(net, BaseFeatureHead):
+            raise TypeError(f"{type(net).__name__} cannot train on cached features: it has no head_on_base")
+        head, load = net, features.load
+
+        def embed(batch: np.ndarray) -> torch.Tensor:
+            return head.head_on_base(torch.from_numpy(batch))
 
     def batch_loss(pool: EpisodePool, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, float]]:
-        lengths = {i: ep.length for i, ep in pool.episodes.items()}
+        lengths = {i: pool.length(i) for i in pool.episodes}
         plan = plan_batch(rng, sorted(pool.episodes), lengths, config.batch_timesteps,
                           config.episodes_per_batch, min_gap)
         clips = gather_clips(pool, plan.episodes, plan.times, frames, stride)
         views, count = clips.shape[:2]
-        batch = torch.from_numpy(clips.reshape(views * count, *clips.shape[2:])).permute(0, 1, 4, 2, 3)
-        embeddings = net(batch).reshape(views, count, -1)
+        embeddings = embed(clips.reshape(views * count, *clips.shape[2:])).reshape(views, count, -1)
         return multiview_npairs_loss(embeddings, config.reg_lambda), {}
 
-    return run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss)
+    return run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss,
+                        load=load)

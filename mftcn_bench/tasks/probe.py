@@ -4,10 +4,11 @@ Protocol of the paper (after PVE): features [e_t, e_t - e_{t-1}] of one camera's
 first frame the difference is zero); an MLP with three hidden layers of 256 trained with Adam (lr 1e-3)
 regresses x_cart, sin(theta), cos(theta), x_dot, theta_dot on the train split; MSE per attribute on the
 test split, Position = mean of the three static ones, Motion = mean of the two velocities, Average = all
-five. A tenth of the train split is held out to stop the MLP's training when it stops improving (so
-uninformative features are not memorised). Targets are on the simulator's scale (metres, radians per
-second), as in the paper; the test targets' variance is stored beside each MSE so a reader can tell how
-much of it is explained.
+five. The MLP fits standardised targets (`standardize_targets`: each target weighs the same in its loss)
+and a tenth of the train split's episodes, whole, is held out to stop its training when it stops improving
+(so uninformative features are not memorised). Beside each MSE: R^2 and the MSE of predicting the train
+targets' mean. MSEs are on the simulator's scale (metres, radians per second), as in the paper; the test
+targets' variance is stored beside them so a reader can tell how much of it is explained.
 """
 
 from __future__ import annotations
@@ -20,9 +21,8 @@ from typing import Any
 
 import numpy as np
 from sklearn.exceptions import ConvergenceWarning
-from sklearn.metrics import mean_squared_error
+from sklearn.metrics import mean_squared_error, r2_score
 from sklearn.neural_network import MLPRegressor
-from sklearn.pipeline import Pipeline, make_pipeline
 from sklearn.preprocessing import StandardScaler
 
 from mftcn_bench.data.cartpole import camera_names, collect_episode
@@ -48,6 +48,7 @@ class ProbeConfig:
     early_stopping: bool
     validation_fraction: float
     patience: int
+    standardize_targets: bool = True
 
     def __post_init__(self) -> None:
         """Refuse values the MLP would reject only after the dataset and the encoder are made."""
@@ -76,13 +77,63 @@ def probe_features(embeddings: np.ndarray) -> np.ndarray:
     return np.concatenate([embeddings, embeddings - previous], axis=1)
 
 
-def probe_regressor(probe: ProbeConfig, seed: int) -> Pipeline:
-    """The probe's MLP (Adam, early stopping on a held-out fraction) behind a feature standardiser."""
-    return make_pipeline(StandardScaler(), MLPRegressor(
-        hidden_layer_sizes=tuple(probe.hidden), solver="adam", learning_rate_init=probe.lr,
-        batch_size=probe.batch_size, max_iter=probe.epochs, tol=probe.tol, early_stopping=probe.early_stopping,
-        validation_fraction=probe.validation_fraction, n_iter_no_change=probe.patience, random_state=seed,
-        shuffle=True))
+class ProbeMLP:
+    """The probe's MLP: standardised features and standardised targets (so that theta_dot, variance ~16,
+    does not outweigh sin and cos theta, ~0.4, in the loss), Adam epochs (`partial_fit`), and early stopping
+    on whole held-out episodes (random held-out frames have neighbours one frame away in the training part).
+    Predictions are on the simulator's scale. sklearn's own early stopping holds out random rows and cannot
+    be given groups, hence this loop; the network and optimiser are sklearn's."""
+
+    def __init__(self, probe: ProbeConfig, seed: int) -> None:
+        self.probe, self.seed = probe, seed
+        self.x_scale, self.y_scale = StandardScaler(), StandardScaler()
+        self.mlp = MLPRegressor(hidden_layer_sizes=tuple(probe.hidden), solver="adam",
+                                learning_rate_init=probe.lr, batch_size=probe.batch_size, shuffle=True,
+                                random_state=seed)
+        self.n_iter_ = 0
+
+    def held_out(self, episodes: np.ndarray) -> np.ndarray:
+        """Which rows form the early-stopping hold-out: a `validation_fraction` of the episodes (at least one,
+        never all)."""
+        names = np.unique(episodes)
+        if not self.probe.early_stopping or len(names) < 2:
+            return np.zeros(len(episodes), dtype=bool)
+        count = min(max(1, round(self.probe.validation_fraction * len(names))), len(names) - 1)
+        picked = np.random.default_rng(self.seed).choice(names, size=count, replace=False)
+        return np.isin(episodes, picked)
+
+    def fit(self, x: np.ndarray, y: np.ndarray, episodes: np.ndarray) -> ProbeMLP:
+        """Fit on rows `x` [N, F], targets `y` [N, T], `episodes` [N] naming each row's episode."""
+        hold = self.held_out(episodes)
+        xs = self.x_scale.fit(x[~hold]).transform(x)
+        self.y_scale.set_params(with_mean=self.probe.standardize_targets, with_std=self.probe.standardize_targets)
+        ys = self.y_scale.fit(y[~hold]).transform(y)
+        best, best_loss, waited = None, np.inf, 0
+        for epoch in range(self.probe.epochs):
+            self.mlp.partial_fit(xs[~hold], ys[~hold])
+            self.n_iter_ = epoch + 1
+            if not hold.any():
+                continue
+            loss = float(np.mean((self.mlp.predict(xs[hold]) - ys[hold]) ** 2))
+            if loss < best_loss - self.probe.tol:
+                best_loss, waited = loss, 0
+                best = ([w.copy() for w in self.mlp.coefs_], [b.copy() for b in self.mlp.intercepts_])
+            else:
+                waited += 1
+                if waited >= self.probe.patience:
+                    break
+        if best is not None:  # the epoch with the lowest held-out loss, as sklearn's early stopping keeps
+            self.mlp.coefs_, self.mlp.intercepts_ = best
+        return self
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        out = self.mlp.predict(self.x_scale.transform(x))
+        return self.y_scale.inverse_transform(out.reshape(len(x), -1))
+
+
+def probe_regressor(probe: ProbeConfig, seed: int) -> ProbeMLP:
+    """The probe's regressor (one definition, used by cartpole-probe and the state-probe diagnostic)."""
+    return ProbeMLP(probe, seed)
 
 
 def summarize(mse: Mapping[str, float]) -> dict[str, float]:
@@ -120,33 +171,44 @@ class CartpoleProbe:
         return collect_episode
 
     def features(self, encoder: Encoder, dataset: MultiViewDataset, split: str) -> tuple[np.ndarray, ...]:
+        """Probe features, targets and each row's episode index for one split."""
         view = dataset.cameras.index(self.probe.camera)
-        xs, ys = [], []
+        xs, ys, names = [], [], []
         for episode in dataset.iter_episodes(split):
             embeddings = embed_episode(encoder, episode.frames[view], episode.state)
             xs.append(probe_features(embeddings))
             ys.append(state_targets(episode.state))
-        return np.concatenate(xs), np.concatenate(ys)
+            names.append(np.full(len(embeddings), episode.index))
+        return np.concatenate(xs), np.concatenate(ys), np.concatenate(names)
 
     def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path | None = None) -> TaskResult:
-        x_train, y_train = self.features(encoder, dataset, "train")
-        x_test, y_test = self.features(encoder, dataset, "test")
+        x_train, y_train, episodes = self.features(encoder, dataset, "train")
+        x_test, y_test, _ = self.features(encoder, dataset, "test")
         regressor = probe_regressor(self.probe, self.seed)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            regressor.fit(x_train, y_train)
-        mse = mean_squared_error(y_test, regressor.predict(x_test), multioutput="raw_values")
+            regressor.fit(x_train, y_train, episodes)
+        predicted = regressor.predict(x_test)
+        mse = mean_squared_error(y_test, predicted, multioutput="raw_values")
         metrics: dict[str, float | None] = summarize(dict(zip(TARGETS, mse, strict=True)))
+        r2 = r2_score(y_test, predicted, multioutput="raw_values")
+        metrics.update({f"r2_{k}": float(v) for k, v in zip(TARGETS, r2, strict=True)})
         metrics.update({f"var_{k}": float(v) for k, v in zip(TARGETS, y_test.var(axis=0), strict=True)})
+        mean_mse = mean_squared_error(y_test, np.broadcast_to(y_train.mean(axis=0), y_test.shape),
+                                      multioutput="raw_values")  # the reference: predict the train mean
+        metrics.update({f"mean_predictor_{k}": float(v) for k, v in zip(TARGETS, mean_mse, strict=True)})
+        metrics["mean_predictor_average"] = float(mean_mse.mean())
         metrics.update({"train_frames": float(len(x_train)), "test_frames": float(len(x_test)),
-                        "probe_epochs": float(regressor[-1].n_iter_)})
+                        "probe_epochs": float(regressor.n_iter_)})
         notes = [f"MSE on the simulator's scale (x in m, velocities in m/s and rad/s); {len(x_train)} train "
                  f"and {len(x_test)} test frames from camera {self.probe.camera!r}."]
         return TaskResult(metrics, notes)
 
     def table(self, metrics: Mapping[str, Any]) -> list[dict[str, Any]]:
-        rows = [{"attribute": k, "MSE": metrics[f"mse_{k}"], "test variance": metrics[f"var_{k}"]}
-                for k in TARGETS]
-        rows += [{"attribute": name.capitalize(), "MSE": metrics[name], "test variance": None}
-                 for name in ("position", "motion", "average")]
+        rows = [{"attribute": k, "MSE": metrics[f"mse_{k}"], "R^2": metrics.get(f"r2_{k}"),
+                 "mean of train targets": metrics.get(f"mean_predictor_{k}"), "test variance": metrics[f"var_{k}"]}
+                for k in TARGETS]  # records made before R^2 and the mean reference were stored have neither
+        rows += [{"attribute": name.capitalize(), "MSE": metrics[name], "R^2": None,
+                  "mean of train targets": metrics.get("mean_predictor_average") if name == "average" else None,
+                  "test variance": None} for name in ("position", "motion", "average")]
         return rows

