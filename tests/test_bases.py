@@ -177,3 +177,30 @@ def test_small_cnn_ablation_trains_its_base(tmp_path):
     before = [p.detach().clone() for p in encoder.net.base.parameters()]
     encoder.fit(data, FitBudget(2), lambda *a: None, tmp_path / "w")
     assert any(not torch.equal(a, b) for a, b in zip(before, encoder.net.base.parameters(), strict=True))
+
+
+def test_runs_share_one_feature_cache_and_record_it(tmp_path, monkeypatch):
+    from mftcn_bench.cli import main
+    from mftcn_bench.store import ResultStore
+
+    monkeypatch.setattr("mftcn_bench.tasks.probe.collect_episode", synthetic_collector)
+    task = ["--task", "cartpole-probe", "--preset", "smoke", "--no-progress", "--home", str(tmp_path / "home"),
+            "--set", "task.dataset.episode_length=30", "--set", "task.dataset.train_episodes=3",
+            "--set", "task.dataset.test_episodes=1", "--set", "task.dataset.height=16",
+            "--set", "task.dataset.width=24", "--set", "task.probe.epochs=3", "--set", "task.probe.hidden=[8]"]
+    tiny = ["--set", "encoder.model.adapter_channels=8", "--set", "encoder.model.temporal_channels=8",
+            "--set", "encoder.train.steps=2", "--set", "encoder.train.batch_timesteps=4",
+            "--set", "encoder.train.episodes_per_batch=2", "--set", "encoder.train.alpha=2",
+            "--set", "encoder.train.episode_pool=2", "--set", "encoder.train.checkpoint_every=0"]
+    assert main(["run", "--encoder", "mftcn2", *task, *tiny]) == 0
+    assert main(["run", "--encoder", "lite0-features", *task]) == 0
+    assert main(["run", "--encoder", "mftcn2", *task, *tiny, "--set", "encoder.model.base.layer=9"]) == 0
+    records = {(r.encoder, r.config["fit"]["feature_cache"]["base"]["base"]["layer"]): r
+               for r in ResultStore(tmp_path / "home" / "results.sqlite").query()}
+    caches = {key: r.config["fit"]["feature_cache"] for key, r in records.items()}
+    assert caches[("mftcn2", 10)]["path"] == caches[("lite0-features", 10)]["path"]  # built once, shared
+    assert caches[("mftcn2", 9)]["path"] != caches[("mftcn2", 10)]["path"]
+    assert len(list((tmp_path / "home" / "features").iterdir())) == 2 + 2  # two caches and their locks
+    assert caches[("mftcn2", 10)]["bytes"] > 0 and caches[("mftcn2", 10)]["frames"] == 4 * 2 * 30
+    encoders = sorted(p.name for p in (tmp_path / "home" / "encoders").iterdir() if p.is_dir())
+    assert len(encoders) == 2  # the base's layer is part of the trained encoder's key
