@@ -65,13 +65,14 @@ def snapshot(root: Path) -> dict[str, tuple[int, int]]:
 
 
 def _complete_dataset_part(home: Path, rel: str) -> bool:
-    """True for the datasets/ folder itself and for files of a dataset whose manifest was written."""
+    """True for the datasets/ (or features/) folder itself and for files of a dataset (or a frozen base's
+    feature cache, which a fit needs before its first step) whose manifest was written."""
     parts = rel.rstrip("/").split("/")
-    if parts[0] != "datasets":
+    if parts[0] not in ("datasets", "features"):
         return False
     if len(parts) == 1:
         return True
-    folder = home / "datasets" / parts[1]
+    folder = home / parts[0] / parts[1]
     complete = (folder / "manifest.json").exists() and not (folder / "progress.json").exists()
     return complete and not parts[-1].startswith(".")
 
@@ -79,7 +80,7 @@ def _complete_dataset_part(home: Path, rel: str) -> bool:
 def assert_nothing_written(home: Path, before: dict[str, tuple[int, int]], rows_before: int = 0,
                            dataset_ok: bool = False) -> None:
     """No new result row and no new or changed file except lock files, an empty results database, the
-    (empty) encoders/ and runs/ folders and, if `dataset_ok`, a complete dataset."""
+    (empty) encoders/ and runs/ folders and, if `dataset_ok`, a complete dataset and feature cache."""
     after = snapshot(home)
     changed = sorted(p for p in after if before.get(p) != after[p])
     allowed_always = {"encoders/", "datasets/", "runs/", "results.sqlite", "results.sqlite-wal",

@@ -110,7 +110,7 @@ def test_every_registered_encoder_runs_the_smoke_probe(smoke_home, monkeypatch):
     home = BenchHome.resolve(smoke_home)
     for name in registry.entries("encoders"):
         if name == "inception":  # needs ImageNet weights on disk: the run stops with where to put them
-            with pytest.raises(BenchError, match="encoder.model.weights"):
+            with pytest.raises(BenchError, match="encoder.model.base.weights"):
                 run(RunRequest(name, "cartpole-probe", "smoke"), home, show_progress=False)
             continue
         outcome = run(RunRequest(name, "cartpole-probe", "smoke"), home, show_progress=False)

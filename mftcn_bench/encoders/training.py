@@ -44,6 +44,9 @@ class ContrastiveTrainConfig:
     checkpoint_every: int
     max_seconds: float = 0.0  # 0: no wall-clock limit
 
+    def __post_init__(self) -> None:
+        check_optimizer(self)
+
     @classmethod
     def from_table(cls, name: str, table: dict) -> ContrastiveTrainConfig:
         return parse_table(cls, name, "train", table)
@@ -102,6 +105,13 @@ def _save_checkpoint(path: Path, net: torch.nn.Module, opt: torch.optim.Optimize
                         "torch_rng": torch.get_rng_state()})
 
 
+def check_optimizer(config: LoopConfig) -> None:
+    """Adam's settings, refused when the encoder is built (before its feature cache or any training)."""
+    if not (np.isfinite(config.lr) and config.lr > 0) or not config.weight_decay >= 0:
+        raise SpecError(f"encoder.train.lr must be a finite number > 0 and encoder.train.weight_decay >= 0, "
+                        f"got {config.lr} and {config.weight_decay}")
+
+
 class LoopConfig(Protocol):
     """The `[train]` keys every trainer built on `run_training` has."""
 
@@ -125,9 +135,7 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
     every `checkpoint_every` steps and training resumes from there bit for bit. A non-finite loss stops
     training with the step. Returns {'final_loss', 'steps', 'seconds', 'resumed_from_step'} (0 unless a
     checkpoint was found)."""
-    if not (np.isfinite(config.lr) and config.lr > 0) or not config.weight_decay >= 0:
-        raise SpecError(f"encoder.train.lr must be a finite number > 0 and encoder.train.weight_decay >= 0, "
-                        f"got {config.lr} and {config.weight_decay}")
+    check_optimizer(config)
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
     trainable = [p for p in net.parameters() if p.requires_grad]  # a frozen base has none
