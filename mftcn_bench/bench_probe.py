@@ -121,14 +121,14 @@ def _run_phases(task, encoder, dataset) -> ProbeMemory:
     features = task.features
 
     def recorded(enc, data, split):  # the task's own features(); the phase ends after the test split
-        x, y = features(enc, data, split)
+        x, y, episodes = features(enc, data, split)
         splits_done.append(split)
-        kept.append(x.nbytes + y.nbytes)
+        kept.append(x.nbytes + y.nbytes + episodes.nbytes)
         if len(splits_done) == 2:
             peaks["embed"] = _peak_rss()
             marks["embedded"] = time.monotonic()
             _reset_peak_rss()
-        return x, y
+        return x, y, episodes
 
     task.features = recorded
     result = task.evaluate(encoder, dataset)
@@ -170,12 +170,13 @@ def measure_fit(train_frames: int, test_frames: int, episode_length: int, epochs
 
     def synthetic(enc, data, split):
         total = train_frames if split == "train" else test_frames
-        xs, ys = [], []
+        xs, ys, names = [], [], []
         for start in range(0, total, episode_length):
             length = min(episode_length, total - start)
             xs.append(probe_features(rng.standard_normal((length, dim)).astype(np.float32)))
             ys.append(state_targets(rng.normal(size=(length, 4))))
-        return np.concatenate(xs), np.concatenate(ys)
+            names.append(np.full(length, start // episode_length))
+        return np.concatenate(xs), np.concatenate(ys), np.concatenate(names)
 
     task.features = synthetic
     memory = _run_phases(task, None, None)
