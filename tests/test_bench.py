@@ -81,7 +81,7 @@ def test_bench_command_prints_and_writes_the_table(tmp_path, capsys):
     out = tmp_path / "perf.md"
     assert main(["bench", "--quick", "--only", "streaming", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "streaming mfTCN step, lookback 29" in printed and "<= 1.5x the cost" in printed
+    assert "streaming mfTCN step, lookback 29" in printed and "<= 1.3x the cost" in printed
     text = out.read_text()
     assert text.startswith("# mftcn-bench bench (quick)") and "cores" in text and "| figure" in text
 
