@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import fcntl
+import json
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -17,6 +19,18 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         handle.flush()
         os.fsync(handle.fileno())
     os.replace(tmp, path)
+
+
+def resume_folder(root: Path) -> dict[str, dict[str, Any]]:
+    """Make `root` ready for a resumable build whose lock the caller holds: create it, delete writes that a
+    kill cut off (never read), and return what `root/progress.json` says was finished, by file name."""
+    root.mkdir(parents=True, exist_ok=True)
+    for stale in root.glob(".*.tmp-*"):
+        stale.unlink()
+    progress_path = root / "progress.json"
+    if not progress_path.exists():
+        return {}
+    return {entry["file"]: entry for entry in json.loads(progress_path.read_text())}
 
 
 @contextmanager

@@ -23,7 +23,7 @@ import numpy as np
 
 from mftcn_bench.data.chunks import read_chunk, write_chunk
 from mftcn_bench.errors import DataError
-from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
+from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock, resume_folder
 from mftcn_bench.provenance import content_hash, versions
 
 FORMAT_VERSION = 1
@@ -155,13 +155,8 @@ def ensure_dataset(
     with exclusive_lock(datasets_dir / f".{root.name}.lock"):
         if (root / "manifest.json").exists():  # another process finished it while we waited
             return MultiViewDataset(root)
-        root.mkdir(parents=True, exist_ok=True)
-        for stale in root.glob(".*.tmp-*"):  # a write cut off by a kill (we hold the lock): never read
-            stale.unlink()
+        done = resume_folder(root)
         progress_path = root / "progress.json"
-        done: dict[str, dict[str, Any]] = {}
-        if progress_path.exists():
-            done = {c["file"]: c for c in json.loads(progress_path.read_text())}
         plan = _episode_plan(config)
         from tqdm import tqdm
 

@@ -31,7 +31,7 @@ from torch import nn
 
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.errors import DataError
-from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
+from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock, resume_folder
 from mftcn_bench.provenance import content_hash, file_sha256
 
 FORMAT_VERSION = 1
@@ -119,13 +119,8 @@ def ensure_feature_cache(features_dir: Path, dataset: MultiViewDataset, base: nn
     with exclusive_lock(features_dir / f".{root.name}.lock"):
         if (root / "manifest.json").exists():  # another process built it while we waited
             return FeatureCache(root)
-        root.mkdir(parents=True, exist_ok=True)
-        for stale in root.glob(".*.tmp-*"):  # a write cut off by a kill (we hold the lock): never read
-            stale.unlink()
+        done = resume_folder(root)
         progress_path = root / "progress.json"
-        done: dict[str, dict[str, Any]] = {}
-        if progress_path.exists():
-            done = {e["file"]: e for e in json.loads(progress_path.read_text())}
         episodes = sorted(i for split in ("train", "val", "test") for i in dataset.episodes(split))
         from tqdm import tqdm
 
