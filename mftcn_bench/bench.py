@@ -250,7 +250,8 @@ def _suite_collector(encoder_name: str, sizes: Sizes, agent_steps: int, task: st
     """torchrl's Collector over the harness's SuiteBatchEnv with the PPO policy of the task (untrained),
     as `train_ppo` builds them; one batch is one episode of `agent_steps` agent steps."""
 
-    from mftcn_bench.rl.observers import make_observer, uses_pixels
+    from mftcn_bench.encoders.base import uses_pixels
+    from mftcn_bench.rl.observers import make_observer
     from mftcn_bench.rl.ppo import PolicyNetworks
     from mftcn_bench.rl.suite_env import SuiteBatchEnv
     from mftcn_bench.runner import RunRequest, prepare

@@ -1,4 +1,4 @@
-"""The `mftcn-bench` command line: run, list, data, sweep, report, leaderboard, results, plot, bench.
+"""The `mftcn-bench` command line: run, list, data, check, sweep, report, leaderboard, results, plot, bench.
 
 The results commands (sweep to plot) live in `cli_results`; `bench` lives in `bench`.
 
@@ -95,6 +95,17 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("--out", default=".", help="folder for the PNG and the mp4 (default: here)")
     _common(show)
 
+    check = commands.add_parser("check", help="check that a registered encoder keeps the encoder contract")
+    check_commands = check.add_subparsers(dest="check_command", required=True, parser_class=_Parser)
+    check_encoder = check_commands.add_parser(
+        "encoder", help="run the contract (metadata, embeddings, embed_episode, streaming, determinism, "
+                        "save/load) against one encoder on a small synthetic dataset; exit 2 on a failure")
+    check_encoder.add_argument("name", help="encoder name (built-in or plugin), e.g. mftcn4")
+    check_encoder.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                               help="override a spec value (repeatable)")
+    check_encoder.add_argument("--keep", metavar="DIR", help="work in DIR and keep it (default: a temporary "
+                                                              "folder)")
+
     from mftcn_bench.cli_results import add_commands
 
     add_commands(commands, _common, _Parser)  # sweep, report, leaderboard, results, plot
@@ -120,6 +131,22 @@ def cmd_run(args: argparse.Namespace) -> None:
         print(note)
 
 
+def cmd_check(args: argparse.Namespace) -> None:
+    from mftcn_bench import registry
+    from mftcn_bench.conformance import check_encoder
+
+    registry.get("encoders", args.name)  # an unknown name is the usual one-line error
+    failed = 0
+    for line in check_encoder(args.name, tuple(parse_override(o) for o in args.overrides),
+                              Path(args.keep) if args.keep else None):
+        print(line, flush=True)
+        failed += line.status == "FAIL"
+    if failed:
+        raise BenchError(f"encoder {args.name!r} failed {failed} check{'s' if failed > 1 else ''} of the "
+                         f"encoder contract (lines marked FAIL above)")
+    print(f"encoder {args.name!r} keeps the encoder contract")
+
+
 def cmd_list(args: argparse.Namespace) -> None:
     from mftcn_bench import registry
 
@@ -134,10 +161,11 @@ def cmd_data(args: argparse.Namespace) -> None:
     dataset = prepare_dataset(prepared, BenchHome.resolve(args.home), show_progress=not args.no_progress)
     if args.data_command == "show":
         from mftcn_bench.data.show import show_episode
+        from mftcn_bench.tasks.base import LabelledTask
 
-        for path in show_episode(dataset, args.split, args.episode, Path(args.out), args.columns,
-                                 getattr(prepared.task, "label_names", ()),
-                                 getattr(prepared.task, "label_formats", None)):
+        task = prepared.task
+        names, formats = (task.label_names, task.label_formats) if isinstance(task, LabelledTask) else ((), None)
+        for path in show_episode(dataset, args.split, args.episode, Path(args.out), args.columns, names, formats):
             print(f"wrote {path}")
         return
     frames = sum(dataset.episode_length(i) for s in ("train", "val", "test") for i in dataset.episodes(s))
@@ -148,17 +176,18 @@ def cmd_data(args: argparse.Namespace) -> None:
           f"at {dataset.image_shape[1]}x{dataset.image_shape[0]}, in {dataset.root}")
 
 
-COMMANDS = {"run": cmd_run, "list": cmd_list, "data": cmd_data}  # the others name theirs (args.handler)
+# The others name theirs (args.handler).
+COMMANDS = {"run": cmd_run, "list": cmd_list, "data": cmd_data, "check": cmd_check}
 
 
 _show_warning = warnings.showwarning
 
 
 def _warn_one_line(message, category, filename, lineno, file=None, line=None) -> None:
-    """Plugin problems as one line; other warnings as Python shows them."""
-    from mftcn_bench.registry import PluginWarning
+    """The harness's warnings (plugins, a dirty source tree, a rerun) as one line; others as Python shows them."""
+    from mftcn_bench.errors import BenchWarning
 
-    if issubclass(category, PluginWarning):
+    if issubclass(category, BenchWarning):
         print(f"mftcn-bench: warning: {message}", file=sys.stderr)
     else:
         _show_warning(message, category, filename, lineno, file, line)

@@ -23,6 +23,10 @@ class TrainingError(BenchError):
     """Training stopped without a usable model (for example a NaN loss)."""
 
 
+class BenchWarning(UserWarning):
+    """Something the user should know, shown by the command line as one line on stderr."""
+
+
 def did_you_mean(kind: str, name: str, valid: list[str]) -> str:
     """One line naming an unknown `name`, the closest valid names and all valid names."""
     import difflib

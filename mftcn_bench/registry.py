@@ -15,14 +15,14 @@ from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any, Literal
 
-from mftcn_bench.errors import BenchError, SpecError, did_you_mean
+from mftcn_bench.errors import BenchError, BenchWarning, SpecError, did_you_mean
 from mftcn_bench.specs import EncoderSpec, TaskSpec, parse_toml
 
 Kind = Literal["encoders", "tasks"]
 GROUPS: dict[Kind, str] = {"encoders": "mftcn_bench.encoders", "tasks": "mftcn_bench.tasks"}
 
 
-class PluginWarning(UserWarning):
+class PluginWarning(BenchWarning):
     """A registered plugin that cannot be used (import failure, missing spec)."""
 
 

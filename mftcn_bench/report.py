@@ -19,9 +19,11 @@ from tabulate import tabulate
 from mftcn_bench.paper_tables import TABLES, PaperRow, PaperTable
 from mftcn_bench.selection import (
     Accept,
+    code_label,
     config_value,
     counted_runs,
     default_embedding_dim,
+    left_out_line,
     matches_current_specs,
     variant_key,
     variant_label,
@@ -47,6 +49,7 @@ class ReportRow:
     seeds: int
     stats: tuple[SeedStats | None, ...]
     paper: tuple[float | None, ...] | None
+    code: str = "-"   # the encoder's distribution and version (`selection.code_label`) of the rows' runs
 
 
 def _row_matches(row: PaperRow, record: RunRecord) -> bool:
@@ -61,6 +64,10 @@ def _row_matches(row: PaperRow, record: RunRecord) -> bool:
 
 def _stats(table: PaperTable, runs: Sequence[RunRecord]) -> tuple[SeedStats | None, ...]:
     return tuple(seed_stats(r.metrics.get(c.metric) for r in runs) for c in table.columns)
+
+
+def _code(runs: Sequence[RunRecord]) -> str:
+    return ", ".join(sorted({code_label(r) for r in runs})) or "-"
 
 
 def _by_preset(runs: Iterable[RunRecord]) -> dict[str, list[RunRecord]]:
@@ -87,7 +94,7 @@ def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | No
                                   (None,) * len(table.columns), paper_row.paper))
         for preset_name, group in groups.items():
             rows.append(ReportRow(paper_row.labels, paper_row.encoder, paper_row.task, preset_name, len(group),
-                                  _stats(table, group), paper_row.paper))
+                                  _stats(table, group), paper_row.paper, _code(group)))
     extra: dict[tuple, list[RunRecord]] = defaultdict(list)
     for record in runs:
         if record.run_id not in used:
@@ -96,7 +103,7 @@ def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | No
     for group in extra.values():
         first = group[0]
         rows.append(ReportRow((NOT_IN_PAPER, *blank), variant_label(first), first.task, first.preset, len(group),
-                              _stats(table, group), None))
+                              _stats(table, group), None, _code(group)))
     return rows
 
 
@@ -119,7 +126,7 @@ def render(table: PaperTable, rows: Sequence[ReportRow], fmt: Format = "markdown
     """The table as text: a title, what the figures are, and the rows."""
     multi_task = len(table.tasks) > 1
     headers = [*table.label_headers, "encoder", *(["task"] if multi_task else []), "preset", "seeds",
-               *(c.label for c in table.columns)]
+               *(c.label for c in table.columns), "encoder code"]
     body = []
     for row in rows:
         cells = [_cell(s, row.paper[i] if row.paper else None, row.paper is not None, table.decimals, fmt)
@@ -128,7 +135,7 @@ def render(table: PaperTable, rows: Sequence[ReportRow], fmt: Format = "markdown
                   str(row.seeds)]
         if fmt == "latex":
             labels = [_latex_escape(text) for text in labels]
-        body.append([*labels, *cells])
+        body.append([*labels, *cells, _latex_escape(row.code) if fmt == "latex" else row.code])
     explain = (f"Ours: mean ± {STD_KIND} (seeds = n); the paper's figure in brackets, \"-\" where it has "
                f"none. Only runs of the current spec files count (embedding size may be overridden). "
                f"{table.note}").strip()
@@ -145,5 +152,9 @@ def report(store: ResultStore, names: Sequence[str], preset: str | None = None, 
            accept: Accept = matches_current_specs) -> str:
     """The named tables (see TABLES) rendered from `store`, separated by blank lines."""
     records = store.query(preset=preset)
-    return "\n\n".join(render(TABLES[name], table_rows(TABLES[name], records, preset, accept), fmt)
-                       for name in names)
+    parts = [render(TABLES[name], table_rows(TABLES[name], records, preset, accept), fmt) for name in names]
+    tasks = {task for name in names for task in TABLES[name].tasks}
+    skipped = left_out_line([r for r in records if r.task in tasks], accept)
+    if skipped:
+        parts.append(f"% {skipped}" if fmt == "latex" else skipped)
+    return "\n\n".join(parts)

@@ -1,10 +1,13 @@
 """One run, spec -> build -> run -> result: resolve the config, make or reuse the dataset, fit or reuse the
 encoder, evaluate the task, store the result.
 
-Identities are content hashes: a run's id covers the resolved config (encoder spec, task spec, preset
-values, overrides), preset name, seed, the dataset's fingerprint and the package version; an encoder's
-checkpoint key covers its resolved spec, the dataset fingerprint, the seed and the package version, so
-tasks that share a dataset share the trained encoder and nothing else is ever served from a cache.
+Identities are content hashes (`identity`): a run's id covers the resolved config (encoder spec, task
+spec, preset values, overrides), preset name, seed, the dataset's fingerprint, the library versions and
+the code of the encoder, the task and the runner (a plugin's distribution, version and source); an
+encoder's checkpoint key covers its resolved spec, the dataset fingerprint, the seed and the encoder's
+code, so tasks that share a dataset share the trained encoder and nothing else is ever served from a cache.
+`--force` computes a run again: an equal result replaces the stored one, a different one (nondeterminism)
+is stored under its own id and named as a rerun, so one id never stands for two results.
 """
 
 from __future__ import annotations
@@ -12,24 +15,25 @@ from __future__ import annotations
 import json
 import shutil
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import mftcn_bench
-from mftcn_bench import registry
+from mftcn_bench import identity, registry
 from mftcn_bench.data.dataset import MultiViewDataset, check_dataset_config, ensure_dataset
-from mftcn_bench.encoders.base import Encoder, FeatureCacheUser, FitBudget
+from mftcn_bench.encoders.base import Encoder, FeatureCacheUser, FitBudget, MultiViewTrainer
 from mftcn_bench.encoders.bases import FrozenBase
 from mftcn_bench.encoders.feature_cache import ensure_feature_cache
-from mftcn_bench.errors import BenchError, SpecError
+from mftcn_bench.errors import BenchError, BenchWarning, SpecError
 from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.home import BenchHome
-from mftcn_bench.provenance import content_hash, versions
+from mftcn_bench.provenance import canonical_json, content_hash, versions, warn_if_dirty
 from mftcn_bench.specs import EncoderSpec, encoder_spec_from_config, resolve_config
 from mftcn_bench.store import ResultStore, RunRecord
-from mftcn_bench.tasks.base import Task
+from mftcn_bench.tasks.base import NeedsArtifacts, Task
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,20 @@ class PreparedRun:
     config: dict[str, Any]
     encoder_entry: registry.Entry
     task: Task
+    code: identity.RunCode
+
+
+def run_id_of(prepared: PreparedRun, dataset_fingerprint: str) -> str:
+    """The id of `prepared` on the dataset with `dataset_fingerprint`."""
+    return identity.run_id(prepared.config, prepared.preset, prepared.request.seed, dataset_fingerprint,
+                           prepared.code)
+
+
+def encoder_key_of(prepared: PreparedRun, dataset_fingerprint: str,
+                   base_identity: Mapping[str, Any] | None = None) -> str:
+    """The key of the trained encoder that `prepared` fits or reuses."""
+    return identity.encoder_fit_key(prepared.config["encoder"], dataset_fingerprint, prepared.request.seed,
+                                    prepared.code.encoder, base_identity)
 
 
 def prepare(request: RunRequest) -> PreparedRun:
@@ -71,25 +89,28 @@ def prepare(request: RunRequest) -> PreparedRun:
     task_entry = registry.get("tasks", request.task)
     preset, config = resolve_config(encoder_entry.spec, task_entry.spec, request.preset, request.overrides)
     spec = encoder_spec_from_config(encoder_entry.description, config["encoder"])  # validates overrides
-    encoder_entry.load()  # a plugin that fails to import fails here, before any work
+    encoder_class = encoder_entry.load()  # a plugin that fails to import fails here, before any work
     task = task_entry.load()(config["task"], request.seed)
-    dataset_config = getattr(task, "dataset_config", None)
+    if not isinstance(task, Task):
+        raise BenchError(f"task {request.task!r} ({task_entry.entry_point.value}) does not implement the Task "
+                         f"protocol (dataset_config, collector, evaluate, table)")
+    dataset_config = task.dataset_config
     if isinstance(dataset_config, Mapping):  # sizes that cannot work are refused before collecting anything
         check_dataset_config(dataset_config)
+        _check_views(encoder_entry, config["encoder"], request.seed, dataset_config)
         length = dataset_config.get("episode_length")
         if isinstance(length, int) and spec.lookback > length:
             raise SpecError(f"encoder {spec.name!r} has a lookback of {spec.lookback} frames ({spec.frames} at "
                             f"stride {spec.stride}), longer than the task's {length}-frame episodes; use an "
                             f"encoder with lookback <= {length} or set task.dataset.episode_length >= "
                             f"{spec.lookback}")
-    return PreparedRun(request, preset, config, encoder_entry, task)
+    return PreparedRun(request, preset, config, encoder_entry, task, identity.run_code(encoder_class, task))
 
 
 def prepare_dataset(prepared: PreparedRun, home: BenchHome, show_progress: bool = True) -> MultiViewDataset:
     """The task's dataset, after whatever the task needs to collect it (an expert policy for demos)."""
-    prepare_artifacts = getattr(prepared.task, "prepare_artifacts", None)
-    if prepare_artifacts is not None:
-        prepare_artifacts(home, show_progress)
+    if isinstance(prepared.task, NeedsArtifacts):
+        prepared.task.prepare_artifacts(home, show_progress)
     return ensure_dataset(home.datasets, prepared.task.dataset_config, prepared.task.collector,
                           show_progress=show_progress)
 
@@ -110,15 +131,10 @@ def _progress_bar(name: str, enabled: bool):
 
 def encoder_workdir(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
                     base_identity: Mapping[str, Any] | None = None) -> Path:
-    """The folder of the encoder this run fits or reuses: keyed by its resolved spec, the dataset's
-    fingerprint, the seed, the package version and, for a frozen base, the base's identity (its weights'
-    checksum)."""
-    config = prepared.config["encoder"]
-    keyed: dict[str, Any] = {"encoder": config, "dataset": dataset.fingerprint, "seed": prepared.request.seed,
-                             "version": mftcn_bench.__version__}
-    if base_identity is not None:
-        keyed["base"] = dict(base_identity)
-    return home.encoders / f"{config['name']}-{content_hash(keyed)}"
+    """The folder of the encoder this run fits or reuses (`encoder_key_of`; for a frozen base the key also
+    holds the base's identity, its weights' checksum)."""
+    key = encoder_key_of(prepared, dataset.fingerprint, base_identity)
+    return home.encoders / f"{prepared.config['encoder']['name']}-{key}"
 
 
 def frozen_base_of(encoder: Encoder) -> FrozenBase | None:
@@ -138,15 +154,38 @@ def attach_feature_cache(encoder: Encoder, dataset: MultiViewDataset, home: Benc
     return {**cache.summary(), "base": base.identity()}
 
 
+def construct_encoder(entry: registry.Entry, encoder_config: Mapping[str, Any], seed: int,
+                      image_shape: tuple[int, int]) -> Encoder:
+    """An encoder, constructed (untrained) for frames of `image_shape` (height, width)."""
+    spec = encoder_spec_from_config(entry.description, encoder_config)
+    encoder = entry.load()(spec, image_shape=image_shape, seed=seed)
+    if not isinstance(encoder, Encoder):
+        raise BenchError(f"encoder {spec.name!r} ({entry.entry_point.value}) does not "
+                         f"implement the Encoder protocol (info, needs_fit, fit, embed, save, load)")
+    return encoder
+
+
+def _check_views(entry: registry.Entry, encoder_config: Mapping[str, Any], seed: int,
+                 dataset_config: Mapping[str, Any]) -> None:
+    """Refuse, before any data is collected, an encoder that trains on more camera views than the task's
+    dataset has (constructing it also refuses a model table it cannot build)."""
+    cameras = list(dataset_config.get("cameras", ()))
+    shape = (dataset_config.get("height"), dataset_config.get("width"))
+    if not all(isinstance(x, int) for x in shape):
+        return
+    encoder = construct_encoder(entry, encoder_config, seed, shape)
+    if isinstance(encoder, MultiViewTrainer) and encoder.training_views > len(cameras):
+        raise SpecError(f"encoder {entry.name!r} trains on {encoder.training_views} camera views of each "
+                        f"moment; the task's dataset has {len(cameras)} ({', '.join(cameras) or 'none'}): give "
+                        f"task.dataset.cameras at least {encoder.training_views} cameras")
+
+
 def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
                   show_progress: bool = True) -> tuple[Encoder, dict[str, Any]]:
     """The encoder for this run, fitted on `dataset` or loaded from the shared checkpoint."""
-    config, seed = prepared.config, prepared.request.seed
-    spec = encoder_spec_from_config(prepared.encoder_entry.description, config["encoder"])
-    encoder = prepared.encoder_entry.load()(spec, image_shape=dataset.image_shape, seed=seed)
-    if not isinstance(encoder, Encoder):
-        raise BenchError(f"encoder {spec.name!r} ({prepared.encoder_entry.entry_point.value}) does not "
-                         f"implement the Encoder protocol (info, needs_fit, fit, embed, save, load)")
+    spec = encoder_spec_from_config(prepared.encoder_entry.description, prepared.config["encoder"])
+    encoder = construct_encoder(prepared.encoder_entry, prepared.config["encoder"], prepared.request.seed,
+                                dataset.image_shape)
     base = frozen_base_of(encoder)
     if not encoder.needs_fit:
         cache = attach_feature_cache(encoder, dataset, home, show_progress)
@@ -162,14 +201,16 @@ def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchH
 
 def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset, workdir: Path, force: bool,
                  show_progress: bool, before_fit: Callable[[], object] = lambda: None) -> dict[str, Any]:
-    """Load the checkpoint in `workdir`, or fit (resuming a killed fit, after `before_fit`) and save it."""
-    model_path = workdir / "model.pt"
+    """Load the checkpoint in `workdir`, or fit (resuming a killed fit, after `before_fit`) and save it.
+
+    A fit is finished when `fit.json` exists: it is written atomically after `save` returned, so a save cut
+    off by a kill (a plugin's `save` need not be atomic) is never taken for a finished checkpoint."""
+    model_path, fit_file = workdir / "model.pt", workdir / "fit.json"
     if force and workdir.exists():
         shutil.rmtree(workdir)
-    if model_path.exists():
+    if fit_file.exists():
         encoder.load(model_path)
-        fit_file = workdir / "fit.json"
-        trained = json.loads(fit_file.read_text()) if fit_file.exists() else {}
+        trained = json.loads(fit_file.read_text())
         return {"fitted": False, **trained, "reused": True, "checkpoint": str(model_path)}
     workdir.mkdir(parents=True, exist_ok=True)
     for stale in workdir.glob(".*.tmp-*"):  # a checkpoint write cut off by a kill (we hold the lock): never read
@@ -187,9 +228,13 @@ def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset,
     finally:
         bar.close()
     encoder.save(model_path)
+    atomic_write_bytes(fit_file, json.dumps(fit_stats, indent=1).encode())
     (workdir / "train_checkpoint.pt").unlink(missing_ok=True)
-    atomic_write_bytes(workdir / "fit.json", json.dumps(fit_stats, indent=1).encode())
     return {"fitted": True, "reused": False, "checkpoint": str(model_path), **fit_stats}
+
+
+class RerunWarning(BenchWarning):
+    """`--force` gave a result that differs from the stored run of the same id."""
 
 
 def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> RunOutcome:
@@ -198,41 +243,61 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
     prepared = prepare(request)
     store = ResultStore(home.database)
     store.check_writable()
+    warn_if_dirty()
     dataset = prepare_dataset(prepared, home, show_progress)
     after_data = time.monotonic()
-    run_id = content_hash({"config": prepared.config, "preset": prepared.preset, "seed": request.seed,
-                           "dataset": dataset.fingerprint, "version": mftcn_bench.__version__})
+    run_id = run_id_of(prepared, dataset.fingerprint)
     existing = store.get(run_id)
     if existing is not None and not request.force:
         return RunOutcome(existing, True, prepared.task.table(existing.metrics),
                           existing.config.get("notes", []))
     encoder, fit = build_encoder(prepared, dataset, home, show_progress)
     after_fit = time.monotonic()
-    run_dir = home.runs / run_id
+    # A forced rerun computes from scratch in a folder of its own; a first run keeps its folder, so a
+    # killed evaluation resumes from its checkpoints there.
+    run_dir = home.runs / (f".{run_id}.rerun" if existing is not None else run_id)
+    if existing is not None:
+        shutil.rmtree(run_dir, ignore_errors=True)
     run_dir.mkdir(parents=True, exist_ok=True)
     try:
         result = prepared.task.evaluate(encoder, dataset, run_dir)
     except BaseException:
-        if not any(run_dir.iterdir()):  # nothing to resume from: leave no empty run folder behind
-            run_dir.rmdir()
+        if existing is not None or not any(run_dir.iterdir()):  # nothing to resume from: leave no folder behind
+            shutil.rmtree(run_dir, ignore_errors=True)
         raise
     done = time.monotonic()
+    record_id = run_id
+    if existing is not None:
+        if canonical_json(existing.metrics) == canonical_json(result.metrics):
+            shutil.rmtree(run_dir, ignore_errors=True)  # reproduced: the stored record and folder stay
+            return RunOutcome(existing, False, prepared.task.table(existing.metrics),
+                              [*result.notes, f"--force: computed again, the same metrics as stored run {run_id}"])
+        record_id = content_hash({"rerun_of": run_id, "metrics": result.metrics})
+        warnings.warn(f"--force: run {run_id} gave other metrics this time (not deterministic on this machine?); "
+                      f"the stored result stays, the new one is run {record_id}", RerunWarning, stacklevel=2)
+    final_dir = home.runs / record_id
     record = RunRecord(
-        run_id=run_id, encoder=request.encoder, task=request.task, preset=prepared.preset,
+        run_id=record_id, encoder=request.encoder, task=request.task, preset=prepared.preset,
         seed=request.seed, dataset_id=dataset.fingerprint,
         config={**prepared.config, "preset": prepared.preset, "seed": request.seed,
-                "encoder_info": asdict(encoder.info), "fit": fit, "notes": result.notes,
-                "dataset_path": str(dataset.root)},
+                "encoder_info": asdict(encoder.info), "code": prepared.code.as_dict(), "fit": fit,
+                "notes": result.notes, "dataset_path": str(dataset.root),
+                **({"rerun_of": run_id} if record_id != run_id else {})},
         versions=versions(), metrics=result.metrics,
         timings={"dataset_s": after_data - began, "fit_s": after_fit - after_data,
                  "evaluate_s": done - after_fit, "total_s": done - began},
-        artifacts=str(home.runs / run_id),
+        artifacts=str(final_dir),
+        created_at=datetime.now(UTC).isoformat(timespec="seconds"),
         curves=result.curves,
     )
     try:
         atomic_write_bytes(run_dir / "result.json", json.dumps(asdict(record), indent=1, sort_keys=True).encode())
+        if run_dir != final_dir:
+            shutil.rmtree(final_dir, ignore_errors=True)  # a rerun of this same result, killed before storing
+            run_dir.rename(final_dir)
         store.put(record)
     except BaseException:
-        shutil.rmtree(run_dir, ignore_errors=True)  # a result is in the store with its folder, or nowhere
+        for folder in {run_dir, final_dir}:  # a result is in the store with its folder, or nowhere
+            shutil.rmtree(folder, ignore_errors=True)
         raise
     return RunOutcome(record, False, prepared.task.table(result.metrics), result.notes)

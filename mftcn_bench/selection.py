@@ -7,6 +7,7 @@ mixed in. Of several such runs of one (encoder, task, preset, embedding size, se
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -18,16 +19,58 @@ from mftcn_bench.store import RunRecord
 Accept = Callable[[RunRecord], bool]
 
 
+def exclusion(record: RunRecord) -> str | None:
+    """Why a stored run does not count for today's specs (None: it counts)."""
+    try:
+        encoder, task = registry.get("encoders", record.encoder), registry.get("tasks", record.task)
+    except BenchError:
+        return "encoder or task not installed here"
+    try:
+        _, config = resolve_config(encoder.spec, task.spec, record.preset,
+                                   [("encoder.embedding_dim", record.config["encoder"]["embedding_dim"])])
+    except (BenchError, KeyError, TypeError):
+        return "a config today's specs cannot reproduce"
+    if config["encoder"] != record.config["encoder"] or config["task"] != record.config["task"]:
+        return "older spec files or other overrides"
+    return None
+
+
 def matches_current_specs(record: RunRecord) -> bool:
     """Whether a stored run used today's spec files for its encoder, task and preset, with at most the
     embedding size overridden."""
-    try:
-        encoder, task = registry.get("encoders", record.encoder), registry.get("tasks", record.task)
-        _, config = resolve_config(encoder.spec, task.spec, record.preset,
-                                   [("encoder.embedding_dim", record.config["encoder"]["embedding_dim"])])
-        return config["encoder"] == record.config["encoder"] and config["task"] == record.config["task"]
-    except (BenchError, KeyError, TypeError):
-        return False
+    return exclusion(record) is None
+
+
+def left_out(records: Iterable[RunRecord], accept: Accept = matches_current_specs) -> dict[str, int]:
+    """How many of `records` `counted_runs` leaves out, by reason."""
+    records = list(records)
+    reasons: Counter[str] = Counter()
+    for record in records:
+        if not accept(record):
+            reasons[(exclusion(record) if accept is matches_current_specs else None) or "not selected"] += 1
+    superseded = sum(1 for r in records if accept(r)) - len(counted_runs(records, accept))
+    if superseded:
+        reasons["a later run of the same seed counts instead"] += superseded
+    return dict(sorted(reasons.items()))
+
+
+def left_out_line(records: Iterable[RunRecord], accept: Accept = matches_current_specs) -> str | None:
+    """`Left out: 3 stored runs (2 older spec files ..., 1 ...).`, or None when every run counts."""
+    reasons = left_out(records, accept)
+    if not reasons:
+        return None
+    total = sum(reasons.values())
+    return (f"Left out: {total} stored run{'s' if total > 1 else ''} ("
+            + "; ".join(f"{n}: {why}" for why, n in reasons.items()) + ").")
+
+
+def code_label(record: RunRecord) -> str:
+    """The encoder's code as recorded: `my-plugin 0.2.0` for a plugin, `mftcn-bench 0.1.0` for a built-in
+    (runs recorded before code identities name the harness's version)."""
+    code = config_value(record, "code.encoder")
+    if isinstance(code, dict) and code.get("distribution"):
+        return f"{code['distribution']} {code.get('version') or '?'}"
+    return f"mftcn-bench {record.versions.get('mftcn-bench', '?')}"
 
 
 def config_value(record: RunRecord, dotted: str) -> Any:

@@ -16,14 +16,12 @@ from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from typing import Any
 
-import mftcn_bench
 from mftcn_bench.data.dataset import MultiViewDataset, dataset_id
 from mftcn_bench.errors import BenchError, SpecError
 from mftcn_bench.executors import Executor, check_executor_args, make_executor
 from mftcn_bench.fileio import atomic_write_bytes
 from mftcn_bench.home import BenchHome
-from mftcn_bench.provenance import content_hash
-from mftcn_bench.runner import PreparedRun, RunRequest, prepare
+from mftcn_bench.runner import PreparedRun, RunRequest, construct_encoder, encoder_key_of, prepare, run_id_of
 from mftcn_bench.store import ResultStore, RunRecord
 from mftcn_bench.sweep_jobs import JobKind, JobResult, JobSpec
 
@@ -86,31 +84,20 @@ def parse_seeds(text: str) -> tuple[int, ...]:
     return tuple(dict.fromkeys(seeds))
 
 
-def planned_run_id(prepared: PreparedRun, fingerprint: str) -> str:
-    """The id `runner.run` gives this run on the dataset with `fingerprint` (the same content hash)."""
-    return content_hash({"config": prepared.config, "preset": prepared.preset, "seed": prepared.request.seed,
-                         "dataset": fingerprint, "version": mftcn_bench.__version__})
-
-
-def encoder_key(prepared: PreparedRun, fingerprint: str) -> str:
-    """Runs with the same key share one trained encoder (the runner's checkpoint key)."""
-    return content_hash({"encoder": prepared.config["encoder"], "dataset": fingerprint,
-                         "seed": prepared.request.seed, "version": mftcn_bench.__version__})
-
-
 def _local_fingerprint(prepared: PreparedRun, home: BenchHome) -> str | None:
     config = prepared.task.dataset_config
-    root = home.datasets / f"{config['name']}-{dataset_id(config)}"
+    root = home.datasets / f"{config['name']}-{dataset_id(config, prepared.task.collector)}"
     return MultiViewDataset(root).fingerprint if (root / "manifest.json").exists() else None
 
 
 def _needs_fit(prepared: PreparedRun) -> bool:
-    """Whether the encoder trains (its class says so; when only an instance can tell, assume it does)."""
+    """Whether the encoder trains: asked of an untrained instance (construction does no training)."""
+    config = prepared.task.dataset_config
     try:
-        needs = getattr(prepared.encoder_entry.load(), "needs_fit", True)
-    except BenchError:
-        return True  # the job reports the import failure
-    return needs if isinstance(needs, bool) else True
+        return construct_encoder(prepared.encoder_entry, prepared.config["encoder"], prepared.request.seed,
+                                 (int(config["height"]), int(config["width"]))).needs_fit
+    except (BenchError, KeyError):
+        return True  # the fit job reports the failure
 
 
 class Sweep:
@@ -184,7 +171,7 @@ class Sweep:
             if local:
                 fingerprints[i] = local
             else:
-                by_dataset.setdefault(dataset_id(p.task.dataset_config), []).append(i)
+                by_dataset.setdefault(dataset_id(p.task.dataset_config, p.task.collector), []).append(i)
         for key, result in self._phase(executor, "dataset", by_dataset).items():
             for i in by_dataset[key]:
                 if result.ok and result.fingerprint:
@@ -196,7 +183,7 @@ class Sweep:
         for i, p in enumerate(self.prepared):
             if i not in fingerprints:
                 continue
-            run_id = planned_run_id(p, fingerprints[i])
+            run_id = run_id_of(p, fingerprints[i])
             stored = self.store.get(run_id)
             self.jobs[i].run_id = run_id
             if stored is not None:
@@ -208,7 +195,7 @@ class Sweep:
         for i in todo:
             if not _needs_fit(self.prepared[i]):
                 continue
-            by_encoder.setdefault(encoder_key(self.prepared[i], fingerprints[i]), []).append(i)
+            by_encoder.setdefault(encoder_key_of(self.prepared[i], fingerprints[i]), []).append(i)
         for key, result in self._phase(executor, "encoder", by_encoder).items():
             if not result.ok:
                 for i in by_encoder[key]:

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from mftcn_bench.data.dataset import ensure_dataset
+from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.encoders.base import FeatureCacheUser, FitBudget, embed_episode
 from mftcn_bench.encoders.bases import BaseConfig, FrozenBase, build_base, lite0_weights_path, to_unit_range
 from mftcn_bench.encoders.feature_cache import FeatureCache, ensure_feature_cache
@@ -15,7 +16,6 @@ from mftcn_bench.encoders.mftcn import MfTCNEncoder
 from mftcn_bench.errors import DataError, SpecError
 from mftcn_bench.registry import get
 from mftcn_bench.specs import EncoderSpec
-from tests.synthetic import synthetic_collector, synthetic_config
 
 LITE0 = {"name": "efficientnet-lite0", "layer": 4}  # a shallow cut keeps the tests fast
 TRAIN = {"steps": 4, "batch_timesteps": 4, "episodes_per_batch": 2, "alpha": 2, "lr": 1e-3,
@@ -204,3 +204,12 @@ def test_runs_share_one_feature_cache_and_record_it(tmp_path, monkeypatch):
     assert caches[("mftcn2", 10)]["bytes"] > 0 and caches[("mftcn2", 10)]["frames"] == 4 * 2 * 30
     encoders = sorted(p.name for p in (tmp_path / "home" / "encoders").iterdir() if p.is_dir())
     assert len(encoders) == 2  # the base's layer is part of the trained encoder's key
+
+
+def test_to_unit_range_leaves_a_float_input_as_it_was():
+    from mftcn_bench.encoders.bases import to_unit_range
+
+    frames = torch.full((1, 3, 2, 2), 255.0)
+    out = to_unit_range(frames)
+    assert torch.equal(frames, torch.full((1, 3, 2, 2), 255.0)) and torch.allclose(out, torch.ones_like(out))
+    assert torch.equal(to_unit_range(torch.zeros(1, 3, 1, 1, dtype=torch.uint8)), -torch.ones(1, 3, 1, 1))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mftcn_bench.data.dataset import ensure_dataset
-from tests.synthetic import synthetic_collector, synthetic_config
+from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 
 DIAGNOSTICS = Path(__file__).resolve().parent.parent / "docs" / "diagnostics"
 

@@ -36,9 +36,9 @@ def synthetic_dataset(home: Path, args: list[str]) -> None:
     """Make the dataset `mftcn-bench run *args` needs with the synthetic collector (nothing rendered): the
     run finds it (a dataset's id is its config) and goes straight to the encoder."""
     from mftcn_bench.data.dataset import ensure_dataset
+    from mftcn_bench.data.synthetic import synthetic_collector
     from mftcn_bench.runner import RunRequest, prepare
     from mftcn_bench.specs import parse_override
-    from tests.synthetic import synthetic_collector
 
     overrides = tuple(parse_override(args[i + 1]) for i, a in enumerate(args) if a == "--set")
     prepared = prepare(RunRequest(args[args.index("--encoder") + 1], "cartpole-probe", "smoke", 0, overrides))
@@ -198,7 +198,7 @@ def test_killed_sweep_resumes_and_keeps_finished_runs(tmp_path):
 COUNTING = """
 import os, sys
 import mftcn_bench.tasks.probe as probe
-from tests.synthetic import synthetic_collector
+from mftcn_bench.data.synthetic import synthetic_collector
 def counting(config, index):
     with open(os.environ["COLLECT_LOG"], "a") as log:
         log.write(f"{os.getpid()} {index}\\n")
@@ -236,3 +236,34 @@ def test_four_concurrent_runs_share_one_dataset_and_lose_no_row(tmp_path):
     assert len(set(collected[0::2])) == 1  # by one process
     fits = sorted(r.config["fit"]["fitted"] for r in records if r.encoder == "mftcn1")
     assert fits == [False, True]  # the shared encoder was trained by one run and loaded by the other
+
+
+def test_a_checkpoint_without_its_completion_marker_is_fitted_again(tmp_path):
+    """A plugin's `save` cut off by a kill leaves `model.pt` but no `fit.json`: never taken as finished."""
+    from mftcn_bench.runner import _fit_or_load
+    from mftcn_bench.specs import EncoderSpec
+
+    class Recording:
+        def __init__(self):
+            self.fits, self.loads = 0, 0
+
+        def fit(self, dataset, budget, progress, workdir):
+            self.fits += 1
+            return {"final_loss": 0.5}
+
+        def save(self, path):
+            path.write_bytes(b"complete")
+
+        def load(self, path):
+            assert path.read_bytes() == b"complete"
+            self.loads += 1
+
+    spec = EncoderSpec("fake", "fake", "test", train={"steps": 1})
+    workdir = tmp_path / "enc"
+    workdir.mkdir()
+    (workdir / "model.pt").write_bytes(b"half")  # the kill came during save
+    encoder = Recording()
+    first = _fit_or_load(encoder, spec, None, workdir, False, False)
+    assert first["fitted"] and encoder.fits == 1 and (workdir / "fit.json").exists()
+    again = _fit_or_load(encoder, spec, None, workdir, False, False)
+    assert again["reused"] and encoder.fits == 1 and encoder.loads == 1

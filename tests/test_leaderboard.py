@@ -32,7 +32,7 @@ def test_board_ranks_by_the_metric_with_mean_std_seeds_version_and_latest_date()
     lines = [line for line in text.splitlines() if line.startswith("| ") and "rank" not in line]
     assert [line.split("|")[2].strip() for line in lines] == ["true-state", "pve", "random-state"]
     first = [c.strip() for c in lines[0].split("|")[1:-1]]
-    assert first == ["1", "true-state", "0.0020 ± 0.0014", "-", "2", "quick", "0.1.0", "2026-03-04"]
+    assert first == ["1", "true-state", "0.0020 ± 0.0014", "-", "2", "quick", "mftcn-bench 0.1.0", "2026-03-04"]
     assert "## preset `quick`" in text and "ddof=1" in text
 
 

@@ -5,6 +5,7 @@ import pytest
 
 from mftcn_bench.data.dataset import ensure_dataset
 from mftcn_bench.data.pouring_labels import LABELS, TILT_CLASSES, class_balance, labels_from_state, tilt_class
+from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.encoders.base import EncoderInfo
 from mftcn_bench.errors import SpecError
 from mftcn_bench.tasks.pouring import PouringTask, summarize
@@ -14,7 +15,6 @@ from mftcn_bench.tasks.pouring_metrics import (
     class_recall_error,
     nearest_other_sequence,
 )
-from tests.synthetic import synthetic_collector, synthetic_config
 
 
 def brute_nearest(x, seq):

@@ -120,3 +120,22 @@ def test_pixel_critic_sees_one_environment_at_a_time_when_computing_advantages(t
     # 10 steps per call, never the batch's 30 (or 60 with the next observations).
     assert max(no_grad_batches) == agent_steps
     assert no_grad_batches.count(agent_steps) == 2 * 3 * 2  # 2 batches x 3 environments x (obs, next obs)
+
+
+def test_the_update_sees_the_normalisation_the_batch_was_collected_with(tmp_path, monkeypatch):
+    """Before any gradient step of a batch, the policy gives the batch's actions the log-probabilities
+    stored when it was collected (importance ratio 1): the observation statistics have not moved."""
+    import mftcn_bench.rl.ppo as ppo
+
+    update, ratios = ppo._update, []
+
+    def checked(batch, loss, advantage, optimizer, config):
+        with torch.no_grad():
+            dist = loss.actor_network.get_dist(batch.clone())
+            stored = batch.get("action_log_prob")
+            ratios.append(float((dist.log_prob(batch.get("action")) - stored).abs().max()))
+        return update(batch, loss, advantage, optimizer, config)
+
+    monkeypatch.setattr(ppo, "_update", checked)
+    _train(tmp_path)
+    assert len(ratios) == 6 and max(ratios) < 1e-4, ratios

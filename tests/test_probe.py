@@ -2,9 +2,9 @@ import numpy as np
 from sklearn.metrics import mean_squared_error
 
 from mftcn_bench.data.dataset import ensure_dataset
+from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.encoders.base import EncoderInfo
 from mftcn_bench.tasks.probe import TARGETS, CartpoleProbe, probe_features, state_targets, summarize
-from tests.synthetic import synthetic_collector, synthetic_config
 
 
 def test_targets_and_features():

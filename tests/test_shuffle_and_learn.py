@@ -3,6 +3,7 @@ import pytest
 import torch
 
 from mftcn_bench.data.dataset import ensure_dataset
+from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.encoders.base import ClipBatch, FitBudget
 from mftcn_bench.encoders.shuffle_and_learn import (
     ShuffleAndLearnEncoder,
@@ -13,7 +14,6 @@ from mftcn_bench.encoders.shuffle_and_learn import (
 from mftcn_bench.encoders.training import EpisodePool
 from mftcn_bench.errors import DataError, SpecError
 from mftcn_bench.specs import EncoderSpec
-from tests.synthetic import synthetic_collector, synthetic_config
 
 MODEL = {"channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "coords": True, "mlp_hidden": 16}
 TRAIN = {"steps": 6, "batch_size": 8, "lr": 3e-3, "weight_decay": 0.0, "camera_index": 0, "episode_pool": 3,

@@ -77,3 +77,12 @@ def test_encoder_defaults_task_wide_then_preset_then_overrides():
     with pytest.raises(SpecError, match=r"presets.quick.encoder_defaults.<encoder>\] must be tables"):
         TaskSpec.from_dict("t", {"description": "d", "default_preset": "quick",
                                  "presets": {"quick": {"encoder_defaults": {"e": 3}}}})
+
+
+@pytest.mark.parametrize("encoder", ["true-state", "random-state"])
+def test_state_encoders_take_the_pouring_state_size_from_the_task(encoder):
+    from mftcn_bench.data.pouring_labels import STATE_COLUMNS
+    from mftcn_bench.runner import RunRequest, prepare
+
+    config = prepare(RunRequest(encoder, "pouring", "smoke")).config
+    assert config["encoder"]["embedding_dim"] == len(STATE_COLUMNS)

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from mftcn_bench import identity
 from mftcn_bench.data.chunks import read_chunk, write_chunk
 from mftcn_bench.errors import DataError
 from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock, resume_folder
@@ -117,8 +118,9 @@ class MultiViewDataset:
             yield self.load(index)
 
 
-def dataset_id(config: Mapping[str, Any]) -> str:
-    return content_hash({"config": dict(config), "format": FORMAT_VERSION})
+def dataset_id(config: Mapping[str, Any], collector: Collector) -> str:
+    """The dataset's identity: its config, the file format and the collector's code (`identity`)."""
+    return identity.dataset_id(config, collector, FORMAT_VERSION)
 
 
 def _episode_plan(config: Mapping[str, Any]) -> list[tuple[int, str]]:
@@ -148,7 +150,7 @@ def ensure_dataset(
 ) -> MultiViewDataset:
     """The dataset for `config`, collected (or finished, after an interruption) if needed."""
     check_dataset_config(config)
-    ident = dataset_id(config)
+    ident = dataset_id(config, collector)
     root = datasets_dir / f"{config['name']}-{ident}"
     if (root / "manifest.json").exists():
         return MultiViewDataset(root)

@@ -27,9 +27,10 @@ class StatePolicy(Protocol):
 
 class ExpertDemoCollector:
     """`collector(config, index)` for `ensure_dataset`, recording the expert stored at `expert_path`, or
-    `policy` instead when one is given (e.g. random actions, to see states the demonstrations never visit)."""
+    `policy` instead when one is given (e.g. random actions, to see states the demonstrations never visit).
+    Without either it still names the dataset's code (its identity) but cannot collect."""
 
-    def __init__(self, expert_path: Path, env_config: SuiteConfig, ppo: PPOConfig,
+    def __init__(self, expert_path: Path | None, env_config: SuiteConfig, ppo: PPOConfig,
                  policy: StatePolicy | None = None) -> None:
         self.expert_path, self.env_config, self.ppo = expert_path, env_config, ppo
         self._expert: StatePolicy | None = policy
@@ -39,6 +40,8 @@ class ExpertDemoCollector:
         from dm_control import suite
 
         if self._expert is None:
+            if self.expert_path is None:
+                raise RuntimeError("the expert must be trained (Task.prepare_artifacts) before its demos are recorded")
             self._expert = ExpertPolicy(self.expert_path, self.env_config, self.ppo)
         rng = np.random.default_rng([int(config["seed"]), index])
         env = suite.load(config["domain"], self.env_config.task, task_kwargs={"random": int(rng.integers(2**31))})

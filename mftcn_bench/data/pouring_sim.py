@@ -25,7 +25,6 @@ from mftcn_bench.errors import DataError
 from mftcn_bench.rendering import MultiViewRenderer, ensure_gl
 
 Z = np.array([0.0, 0.0, 1.0])
-COLLECTOR_VERSION = 2  # part of a dataset's identity: bump when the same config would give other episodes
 
 
 def min_jerk(s: float) -> float:
@@ -445,4 +444,4 @@ def collect_episode(config: Mapping[str, Any], index: int) -> dict[str, np.ndarr
     return PouringEpisode(config, index).run()
 
 
-__all__ = ["COLLECTOR_VERSION", "STATE_COLUMNS", "collect_episode"]
+__all__ = ["STATE_COLUMNS", "collect_episode"]

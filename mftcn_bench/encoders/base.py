@@ -20,6 +20,8 @@ from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.errors import BenchError
 
 if TYPE_CHECKING:
+    from torch import nn
+
     from mftcn_bench.encoders.bases import FrozenBase
     from mftcn_bench.encoders.feature_cache import FeatureCache
 
@@ -102,26 +104,104 @@ class FeatureCacheUser(Protocol):
     def use_feature_cache(self, cache: FeatureCache) -> None: ...
 
 
+@runtime_checkable
+class EpisodeEmbedder(Protocol):
+    """Optional capability: embeds every clip of one episode at once (sharing per-frame work between
+    overlapping clips). Must equal `embed` of the same clips (`mftcn-bench check encoder` tests it)."""
+
+    def embed_episode(self, frames: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
+        """frames uint8 [T, H, W, 3] of one view (state [T, S] or None) -> float32 [T, D]: the embedding
+        of the clip ending at each frame, clips built by `mftcn_bench.data.clips`."""
+        ...
+
+
+@runtime_checkable
+class Stream(Protocol):
+    """An incremental embedder of `num_envs` environments stepped together (from `streaming`)."""
+
+    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """frames uint8 [E, H, W, 3] (None for an encoder that does not use pixels), episode_start bool [E],
+        state float [E, S] -> float32 [E, D], the embedding of the clip ending at each new frame."""
+        ...
+
+
+@runtime_checkable
+class HistoryStream(Stream, Protocol):
+    """A stream that can take a frame into its history without embedding it (the inner steps of an
+    action repeat); a `Stream` without it is pushed instead."""
+
+    def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None: ...
+
+
+@runtime_checkable
+class StreamingEncoder(Protocol):
+    """Optional capability: an incremental embedder for rollouts, equal to `embed` of the same clips.
+    Without it a rollout keeps the raw frames of the lookback window and calls `embed` every step."""
+
+    def streaming(self, num_envs: int) -> Stream: ...
+
+
+@runtime_checkable
+class MultiViewTrainer(Protocol):
+    """Optional declaration: an encoder whose training needs `training_views` cameras' views of each
+    moment (time-contrastive: 2); a task whose dataset has fewer is refused before any data is collected."""
+
+    training_views: int
+
+
+@runtime_checkable
+class PixelUse(Protocol):
+    """Optional declaration: `uses_pixels = False` for an encoder that reads only `ClipBatch.state`
+    (rollouts then render nothing for it). Encoders without it read pixels."""
+
+    uses_pixels: bool
+
+
+@runtime_checkable
+class PolicyTrainedEncoder(Protocol):
+    """Optional capability: an encoder with no training signal of its own, whose `net` (uint8 clips
+    [B, n, 3, H, W] -> [B, D]) the control tasks train jointly with the policy (pixels-cnn)."""
+
+    trains_with_policy: bool
+
+    @property
+    def net(self) -> nn.Module: ...
+
+
+def uses_pixels(encoder: Encoder) -> bool:
+    """Whether the encoder reads rendered frames (true state and random state do not)."""
+    return encoder.uses_pixels if isinstance(encoder, PixelUse) else True
+
+
+def trains_with_policy(encoder: Encoder) -> bool:
+    return isinstance(encoder, PolicyTrainedEncoder) and encoder.trains_with_policy
+
+
 def embed_episode(encoder: Encoder, frames: np.ndarray, state: np.ndarray | None = None,
                   batch_size: int = 256) -> np.ndarray:
     """Embeddings [T, D] of the clips ending at every frame of one view of an episode.
 
-    Uses the encoder's own `embed_episode(frames, state)` when it has one (it can share per-frame work
-    between overlapping clips); otherwise builds the clips and calls `embed` in batches.
+    Uses the encoder's own `embed_episode(frames, state)` when it is an `EpisodeEmbedder`; otherwise
+    builds the clips and calls `embed` in batches (`embed_clips_of_episode`).
     """
-    own = getattr(encoder, "embed_episode", None)
-    if own is not None:
-        out = own(frames, state)
+    if isinstance(encoder, EpisodeEmbedder):
+        out = encoder.embed_episode(frames, state)
     else:
-        info = encoder.info
-        index = clip_indices(np.arange(len(frames)), info.frames, info.stride)
-        parts = []
-        for start in range(0, len(frames), batch_size):
-            rows = index[start:start + batch_size]
-            batch = ClipBatch(frames[rows], None if state is None else state[rows])
-            parts.append(check_embeddings(encoder, encoder.embed(batch), len(rows)))
-        out = np.concatenate(parts)
+        out = embed_clips_of_episode(encoder, frames, state, batch_size)
     return check_embeddings(encoder, out, len(frames))
+
+
+def embed_clips_of_episode(encoder: Encoder, frames: np.ndarray, state: np.ndarray | None = None,
+                           batch_size: int = 256) -> np.ndarray:
+    """`embed_episode` through `embed` alone: every clip of the episode built and embedded in batches."""
+    info = encoder.info
+    index = clip_indices(np.arange(len(frames)), info.frames, info.stride)
+    parts = []
+    for start in range(0, len(frames), batch_size):
+        rows = index[start:start + batch_size]
+        batch = ClipBatch(frames[rows], None if state is None else state[rows])
+        parts.append(check_embeddings(encoder, encoder.embed(batch), len(rows)))
+    return np.concatenate(parts)
 
 
 def check_embeddings(encoder: Encoder, out: np.ndarray, rows: int) -> np.ndarray:

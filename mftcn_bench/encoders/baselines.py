@@ -1,8 +1,9 @@
 """The paper's reference rows: random state (lower bound), true state (upper bound), raw pixels via a CNN.
 
 - `RandomStateEncoder` (`random-state`): Gaussian noise of the state's size. Each clip's noise comes from
-  a numpy Generator seeded by (seed, a hash of the clip's pixel bytes), so a clip always gets the same
-  noise, whatever the batch it is in or the order of the batches: results are reproducible.
+  a numpy Generator seeded by (seed, a hash of the clip's last simulator state), so a clip always gets
+  the same noise, whatever the batch it is in, the order of the batches or whether it is embedded in a
+  batch or in a rollout (which renders nothing for it): results are reproducible.
 - `TrueStateEncoder` (`true-state`): the simulator state of the clip's last frame. A 4-column cartpole
   state (x, theta, x_dot, theta_dot) is mapped like the probe's targets, to (x, sin theta, cos theta,
   x_dot, theta_dot); any other state is returned as it is.
@@ -53,22 +54,25 @@ class RandomStateModelConfig:
             raise SpecError(f"random-state [model]: std must be > 0, got {self.std}")
 
 
-def clip_noise(clip: np.ndarray, seed: int, dim: int, std: float) -> np.ndarray:
-    """float32 [dim] Gaussian noise that depends only on (seed, the clip's pixel bytes)."""
-    digest = hashlib.blake2b(np.ascontiguousarray(clip).tobytes(), digest_size=8).digest()
+def state_noise(state: np.ndarray, seed: int, dim: int, std: float) -> np.ndarray:
+    """float32 [dim] Gaussian noise that depends only on (seed, the bytes of one float64 state [S])."""
+    data = np.ascontiguousarray(state, dtype=np.float64).tobytes()
+    digest = hashlib.blake2b(data, digest_size=8).digest()
     rng = np.random.default_rng([seed, int.from_bytes(digest, "little")])
     return (rng.standard_normal(dim) * std).astype(np.float32)
 
 
 class RandomStateStream:
-    """Fresh Gaussian noise at every step of every environment, reproducible from the seed."""
+    """The noise of each environment's current state (as `embed` gives the clip ending there)."""
 
-    def __init__(self, seed: int, num_envs: int, dim: int, std: float) -> None:
-        self._rngs = [np.random.default_rng([seed, i]) for i in range(num_envs)]
-        self.dim, self.std = dim, std
+    def __init__(self, seed: int, dim: int, std: float) -> None:
+        self.seed, self.dim, self.std = seed, dim, std
 
     def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
-        return np.stack([rng.standard_normal(self.dim) * self.std for rng in self._rngs]).astype(np.float32)
+        return np.stack([state_noise(s, self.seed, self.dim, self.std) for s in np.asarray(state)])
+
+    def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None:
+        """The noise has no history."""
 
 
 class RandomStateEncoder(SpecEncoder):
@@ -83,12 +87,13 @@ class RandomStateEncoder(SpecEncoder):
 
     def embed(self, clips: ClipBatch) -> np.ndarray:
         dim, std = self.spec.embedding_dim, self.model_config.std
-        out = [clip_noise(clip, self.seed, dim, std) for clip in clips.frames]
+        if clips.state is None:
+            raise BenchError(f"encoder {self.spec.name!r} needs the clips' simulator state; this dataset has none")
+        out = [state_noise(clip[-1], self.seed, dim, std) for clip in clips.state]
         return np.stack(out) if out else np.zeros((0, dim), np.float32)
 
     def streaming(self, num_envs: int) -> RandomStateStream:
-        """Noise for rollouts: each environment draws from its own generator seeded by (seed, index)."""
-        return RandomStateStream(self.seed, num_envs, self.spec.embedding_dim, self.model_config.std)
+        return RandomStateStream(self.seed, self.spec.embedding_dim, self.model_config.std)
 
     def save(self, path: Path) -> None:
         save_payload(path, {"seed": self.seed, "embedding_dim": self.spec.embedding_dim})

@@ -83,8 +83,8 @@ class BaseConfig:
 
 
 def to_unit_range(frames: torch.Tensor) -> torch.Tensor:
-    """uint8 [..., 3, H, W] -> float in [-1, 1]."""
-    return frames.float().mul_(2.0 / 255.0).sub_(1.0)
+    """uint8 [..., 3, H, W] -> float in [-1, 1]; a new tensor (a float input is left as it was)."""
+    return frames.float() * (2.0 / 255.0) - 1.0
 
 
 def _resized(x: torch.Tensor, factor: float) -> torch.Tensor:

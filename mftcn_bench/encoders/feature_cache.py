@@ -9,10 +9,11 @@ evaluations and sweep jobs that share a base and a dataset share one cache. Layo
     progress.json     episodes finished so far (a killed build resumes there)
     ep00000.npy ...   float32 [views, T, C, h, w], read memory-mapped (never the whole cache in memory)
 
-The id hashes the dataset's fingerprint and the base's identity (settings and weights checksum), so a
-changed base or dataset never reads another's features. Each episode also records the sha256 of each
-view's frames, so `lookup(frames)` finds cached features by content (an embedding call that passes frames
-gets the cache without knowing episode numbers) and can never return another clip's features.
+The id (`identity.feature_cache_id`) hashes the dataset's fingerprint, the base's settings, weights
+checksum and code, so a changed base or dataset never reads another's features. Each episode also records
+the sha256 of each view's frames, so `lookup(frames)` finds cached features by content (an embedding call
+that passes frames gets the cache without knowing episode numbers) and can never return another clip's
+features.
 """
 
 from __future__ import annotations
@@ -29,10 +30,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from mftcn_bench import identity
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.errors import DataError
 from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock, resume_folder
-from mftcn_bench.provenance import content_hash, file_sha256
+from mftcn_bench.provenance import file_sha256
 
 FORMAT_VERSION = 1
 
@@ -104,15 +106,16 @@ class FeatureCache:
         return self.load(episode)[view]
 
 
-def cache_id(dataset: MultiViewDataset, identity: Mapping[str, Any]) -> str:
-    return content_hash({"dataset": dataset.fingerprint, "base": dict(identity), "format": FORMAT_VERSION})
+def cache_id(dataset: MultiViewDataset, base: nn.Module, base_identity: Mapping[str, Any]) -> str:
+    """The cache's identity: the dataset, the base's settings and weights, its code, the cache format."""
+    return identity.feature_cache_id(dataset.fingerprint, base_identity, base, FORMAT_VERSION)
 
 
 def ensure_feature_cache(features_dir: Path, dataset: MultiViewDataset, base: nn.Module,
-                         identity: Mapping[str, Any], *, batch_size: int = 64,
+                         base_identity: Mapping[str, Any], *, batch_size: int = 64,
                          show_progress: bool = True) -> FeatureCache:
     """The cache of `base`'s features on every episode of `dataset`, built (or finished) if needed."""
-    ident = cache_id(dataset, identity)
+    ident = cache_id(dataset, base, base_identity)
     root = features_dir / f"{dataset.config['name']}-{ident}"
     if (root / "manifest.json").exists():
         return FeatureCache(root)
@@ -149,7 +152,7 @@ def ensure_feature_cache(features_dir: Path, dataset: MultiViewDataset, base: nn
         bar.close()
         ordered = [done[f"ep{i:05d}.npy"] for i in episodes]
         manifest = {"id": ident, "format": FORMAT_VERSION, "dataset": dataset.fingerprint,
-                    "dataset_path": str(dataset.root), "base": dict(identity), "feature_shape": shape,
+                    "dataset_path": str(dataset.root), "base": dict(base_identity), "feature_shape": shape,
                     "frames": total, "build_s": round(time.monotonic() - began, 3),
                     "base_forward_s": round(computed_s, 3), "episodes": ordered}
         atomic_write_bytes(root / "manifest.json", json.dumps(manifest, indent=1, sort_keys=True).encode())

@@ -159,6 +159,7 @@ class MfTCNEncoder(OnBaseEncoder):
     """The mfTCN family (mftcn1 ... mftcn29): clip shape and sizes from the spec."""
 
     needs_fit = True
+    training_views = 2  # n-pairs across two cameras' views of the same moment (`MultiViewTrainer`)
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         super().__init__(spec, image_shape, seed)

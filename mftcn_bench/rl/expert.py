@@ -17,16 +17,16 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from mftcn_bench import identity
 from mftcn_bench.errors import TrainingError
 from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
-from mftcn_bench.provenance import content_hash
 from mftcn_bench.rl.observers import StateObserver
 from mftcn_bench.rl.ppo import PolicyNetworks, PPOConfig, evaluate_policy, train_ppo
 from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig, physics_state
 
 
 def expert_key(env: SuiteConfig, ppo: PPOConfig, seed: int) -> str:
-    return content_hash({"env": asdict(env), "ppo": asdict(ppo), "seed": seed})
+    return identity.expert_key(asdict(env), asdict(ppo), seed)
 
 
 def state_env_factory(env_config: SuiteConfig):
@@ -57,7 +57,7 @@ def ensure_expert(experts_dir: Path, env_config: SuiteConfig, ppo: PPOConfig, se
         returns = evaluate_policy(make_env, nets, ppo.eval_episodes, min(ppo.num_envs, ppo.eval_episodes), seed)
         buffer = io.BytesIO()
         torch.save({"nets": nets.state_dict()}, buffer)
-        summary = {"return_mean": float(returns.mean()), "return_std": float(returns.std()),
+        summary = {"return_mean": float(returns.mean()), "return_std": float(returns.std(ddof=1)),
                    "episodes": len(returns), "frames": state.frames, "wall_s": state.wall_s,
                    "curve": {"frames": state.curve_frames, "return": state.curve_return}}
         atomic_write_bytes(workdir / "expert.json", json.dumps(summary, indent=1).encode())

@@ -11,30 +11,13 @@ policy sees exactly the embeddings the encoder gives the same episode offline.
 
 from __future__ import annotations
 
-from typing import Protocol
-
 import numpy as np
 
 from mftcn_bench.data.clips import clip_offsets
-from mftcn_bench.encoders.base import ClipBatch, Encoder, check_embeddings
+from mftcn_bench.encoders.base import ClipBatch, Encoder, HistoryStream, StreamingEncoder, check_embeddings
 
-
-class Observer(Protocol):
-    """Embeds the clip ending at each new frame of `num_envs` environments."""
-
-    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
-        """frames uint8 [E, H, W, 3] (None when the encoder does not use pixels), episode_start bool [E],
-        state float [E, S] -> float32 [E, D]."""
-        ...
-
-    def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None:
-        """As `push`, for a frame whose embedding is not needed (it still enters the clip history)."""
-        ...
-
-
-def uses_pixels(encoder: Encoder) -> bool:
-    """Whether the encoder reads rendered frames (true state and random state do not)."""
-    return bool(getattr(encoder, "uses_pixels", True))
+# What an environment feeds: every new frame through `push` (embedded) or `observe` (history only).
+Observer = HistoryStream
 
 
 class ClipWindowObserver:
@@ -74,7 +57,7 @@ class ClipWindowObserver:
 
 
 class _StreamingObserver:
-    def __init__(self, encoder: Encoder, num_envs: int) -> None:
+    def __init__(self, encoder: StreamingEncoder, num_envs: int) -> None:
         self.encoder, self.num_envs = encoder, num_envs
         self._stream = encoder.streaming(num_envs)
 
@@ -83,9 +66,8 @@ class _StreamingObserver:
         return check_embeddings(self.encoder, out, self.num_envs)
 
     def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None:
-        observe = getattr(self._stream, "observe", None)  # a plugin's stream may only have push
-        if callable(observe):
-            observe(frames, episode_start, state)
+        if isinstance(self._stream, HistoryStream):
+            self._stream.observe(frames, episode_start, state)
         else:
             self._stream.push(frames, episode_start, state)
 
@@ -105,6 +87,6 @@ class StateObserver:
 
 def make_observer(encoder: Encoder, num_envs: int) -> Observer:
     """The encoder's own streaming embedder when it has one, otherwise a clip window over `embed`."""
-    if callable(getattr(encoder, "streaming", None)):
+    if isinstance(encoder, StreamingEncoder):
         return _StreamingObserver(encoder, num_envs)
     return ClipWindowObserver(encoder, num_envs)

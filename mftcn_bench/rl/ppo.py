@@ -7,8 +7,8 @@ killed run resumes from its last checkpoint (networks, optimiser, observation st
 and continues exactly where the checkpoint left it.
 
 What made PPO learn swing-up from state reliably here (measured, see the task spec): action repeat,
-many environments stepped in one process, running observation normalisation (statistics updated between
-batches and saved with the networks), reward scaling, a small
+many environments stepped in one process, running observation normalisation (statistics updated after
+each batch's update and saved with the networks), reward scaling, a small
 initial policy output, gradient-norm clipping, value clipping and a linearly annealed learning rate. The
 policy's only input is the observation: the encoder's embedding (or, for pixels-cnn, the raw clip through
 a CNN trained by the PPO losses of both heads).
@@ -83,7 +83,8 @@ Progress = Callable[[int, int, dict[str, float]], None]
 
 class RunningNormalizer(nn.Module):
     """(x - mean) / std with statistics of every observation collected so far, updated once per batch
-    (between rollouts, so a batch is collected with fixed statistics) and saved with the networks."""
+    after its PPO update (so a batch is collected and learned from with the same statistics) and saved
+    with the networks."""
 
     def __init__(self, size: int, clip: float = 10.0, eps: float = 1e-8) -> None:
         super().__init__()
@@ -194,12 +195,14 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
     began = time.monotonic() - state.wall_s
     for batch in collector:
         returns = episode_returns(batch, config.num_envs, agent_steps)
-        if nets.normalizer is not None:
-            nets.normalizer.update(batch.get("observation"))
         if config.anneal_lr:
             for group in optimizer.param_groups:
                 group["lr"] = config.lr * (1.0 - state.batch / total_batches)
         stats = _update(batch, loss, advantage, optimizer, config)
+        # After the update: its importance ratios compare log-probabilities under the statistics the batch
+        # was collected with; the next batch is collected with the new ones.
+        if nets.normalizer is not None:
+            nets.normalizer.update(batch.get("observation"))
         state.batch += 1
         state.frames += frames_per_batch
         state.wall_s = time.monotonic() - began

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder
+
+if TYPE_CHECKING:
+    from mftcn_bench.home import BenchHome
 
 # Learning curves: name -> columns of equal length, e.g.
 # {"train": {"frames": [...], "wall_s": [...], "return": [...]}}.
@@ -25,12 +28,10 @@ class TaskResult:
     curves: Curves = field(default_factory=dict)
 
 
+@runtime_checkable
 class Task(Protocol):
-    """Constructed as `cls(config, seed)` from the resolved `task` table.
-
-    A task that needs something before its data can be collected (the cheetah task's expert policy) also
-    has `prepare_artifacts(home: BenchHome, show_progress: bool) -> None`; the runner calls it first.
-    """
+    """Constructed as `cls(config, seed)` from the resolved `task` table. Optional capabilities:
+    `NeedsArtifacts`, `LabelledTask`."""
 
     @property
     def dataset_config(self) -> Mapping[str, Any]: ...
@@ -46,3 +47,19 @@ class Task(Protocol):
     def table(self, metrics: Mapping[str, Any]) -> list[dict[str, Any]]:
         """Rows of the printed result table."""
         ...
+
+
+@runtime_checkable
+class NeedsArtifacts(Protocol):
+    """A task that needs something built before its data can be collected (the cheetah task's expert
+    policy); the runner calls `prepare_artifacts` first."""
+
+    def prepare_artifacts(self, home: BenchHome, show_progress: bool = True) -> None: ...
+
+
+@runtime_checkable
+class LabelledTask(Protocol):
+    """A task whose episodes carry per-frame labels (pouring): `mftcn-bench data show` captions them."""
+
+    label_names: Sequence[str]
+    label_formats: Mapping[str, Sequence[str]] | None

@@ -25,13 +25,14 @@ from torch import nn
 from mftcn_bench.data.cartpole import collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.data.expert_demos import ExpertDemoCollector
-from mftcn_bench.encoders.base import Encoder
+from mftcn_bench.encoders.base import Encoder, trains_with_policy, uses_pixels
 from mftcn_bench.errors import SpecError
 from mftcn_bench.home import BenchHome
 from mftcn_bench.rl.expert import ensure_expert, expert_key
-from mftcn_bench.rl.observers import make_observer, uses_pixels
+from mftcn_bench.rl.observers import make_observer
 from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
 from mftcn_bench.rl.suite_env import PixelClip, SuiteBatchEnv, SuiteConfig
+from mftcn_bench.suite_limits import check_episode_fits
 from mftcn_bench.tasks.base import TaskResult
 
 
@@ -64,6 +65,11 @@ class ControlTask:
         seen_as = {"height": dataset["height"], "width": dataset["width"], **dataset["render"]}
         self.env_config = _table(SuiteConfig, config["name"], "env", {**config["env"], **seen_as})
         self.ppo = _table(PPOConfig, config["name"], "ppo", config["ppo"])
+        env = self.env_config
+        check_episode_fits(env.domain, env.task, env.episode_length, f"task {config['name']!r}: [env] episode_length")
+        if isinstance(dataset.get("episode_length"), int):  # other bad values: check_dataset_config
+            check_episode_fits(env.domain, env.task, dataset["episode_length"],
+                               f"task {config['name']!r}: [dataset] episode_length")
         if self.env_config.camera not in dataset["cameras"]:
             raise SpecError(f"task {config['name']!r}: [env] camera {self.env_config.camera!r} is not one of the "
                             f"dataset's cameras {', '.join(dataset['cameras'])}")
@@ -78,7 +84,7 @@ class ControlTask:
 
     def _env_factory(self, encoder: Encoder):
         info = encoder.info
-        joint = bool(getattr(encoder, "trains_with_policy", False))
+        joint = trains_with_policy(encoder)
 
         def make_env(num_envs: int, seed: int) -> SuiteBatchEnv:
             if joint:
@@ -110,7 +116,8 @@ class ControlTask:
         curves = {"train": {"frames": state.curve_frames, "wall_s": state.curve_wall_s,
                             "return": state.curve_return}}
         plot_curve(curves["train"], workdir / "curve.png", f"{encoder.info.name} on {self.config['name']}")
-        metrics = {"return_mean": float(returns.mean()), "return_std": float(returns.std()),
+        # Over the test episodes, as the seeds' std: the sample std (ddof=1).
+        metrics = {"return_mean": float(returns.mean()), "return_std": float(returns.std(ddof=1)),
                    "episodes": float(len(returns)), "frames": float(state.frames),
                    "train_wall_s": float(state.wall_s),
                    "train_fps": float(state.frames / state.wall_s) if state.wall_s else None}
@@ -120,7 +127,7 @@ class ControlTask:
         return TaskResult(metrics, notes, curves)
 
     def table(self, metrics: Mapping[str, Any]) -> list[dict[str, Any]]:
-        return [{"return (mean)": metrics["return_mean"], "return (std)": metrics["return_std"],
+        return [{"return (mean)": metrics["return_mean"], "return (sample std, ddof=1)": metrics["return_std"],
                  "test episodes": int(metrics["episodes"]), "training frames": int(metrics["frames"])}]
 
 
@@ -162,8 +169,7 @@ class ExpertDemoControlTask(ControlTask):
 
     @property
     def collector(self) -> Collector:
-        if self._expert_path is None:
-            raise RuntimeError("prepare_artifacts(home) must run before the dataset is collected")
+        # Before prepare_artifacts it has no expert: it keys the dataset, and refuses to collect.
         return ExpertDemoCollector(self._expert_path, self.env_config, self.expert_ppo)
 
 

@@ -94,10 +94,8 @@ class PouringTask:
             unknown = [c for c in dataset["cameras"] if c not in CAMERAS]
             if unknown or len(dataset["cameras"]) < 2:
                 raise SpecError(f"pouring-sim needs two of the cameras {', '.join(CAMERAS)}; got {dataset['cameras']}")
-            from mftcn_bench.data.pouring_sim import COLLECTOR_VERSION
-
-            self._dataset_config = {**{k: v for k, v in dataset.items() if k not in ("real", "real_path")},
-                                    "collector_version": COLLECTOR_VERSION}
+            # The collector's code is part of the dataset's identity (`identity.dataset_id`).
+            self._dataset_config = {k: v for k, v in dataset.items() if k not in ("real", "real_path")}
         if self.evaluation.split == "val" and int(self._dataset_config.get("val_episodes", 0)) < 2:
             raise SpecError("evaluation.split = \"val\" needs at least 2 val episodes (neighbours come from "
                             "other sequences)")

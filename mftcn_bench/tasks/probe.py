@@ -29,6 +29,7 @@ from mftcn_bench.data.cartpole import camera_names, collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder, embed_episode
 from mftcn_bench.errors import SpecError
+from mftcn_bench.suite_limits import check_episode_fits
 from mftcn_bench.tasks.base import TaskResult
 
 TARGETS = ("x_cart", "sin_theta", "cos_theta", "x_dot", "theta_dot")
@@ -154,6 +155,9 @@ class CartpoleProbe:
             self.probe = ProbeConfig(**config["probe"])
         except TypeError as exc:
             raise SpecError(f"task {config['name']!r}: bad [probe] table ({exc})") from None
+        if isinstance(config["dataset"].get("episode_length"), int):  # other bad values: check_dataset_config
+            check_episode_fits("cartpole", "swingup", config["dataset"]["episode_length"],
+                               f"task {config['name']!r}: [dataset] episode_length")
         available = camera_names()
         unknown = [c for c in config["dataset"]["cameras"] if c not in available]
         if unknown:

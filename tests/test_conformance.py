@@ -1,0 +1,88 @@
+"""`mftcn-bench check encoder`: passes on built-ins, names the broken part of a broken plugin, exit 2."""
+
+from __future__ import annotations
+
+import pytest
+
+from mftcn_bench.cli import main
+from tests.plugins import install
+
+BROKEN = '''
+import numpy as np
+
+from mftcn_bench.encoders.baselines import TrueStateEncoder
+
+
+class EpisodeOffByOne(TrueStateEncoder):
+    """embed_episode shifts every embedding one frame late: the bug `embed` vs `embed_episode` catches."""
+
+    def embed_episode(self, frames, state=None):
+        out = self.embed_episode_exact(state)
+        return np.concatenate([out[:1], out[:-1]])
+
+    def embed_episode_exact(self, state):
+        from mftcn_bench.encoders.baselines import state_embedding
+
+        return state_embedding(np.asarray(state, dtype=np.float64)).astype(np.float32)
+
+
+class WrongDtype(TrueStateEncoder):
+    def embed(self, clips):
+        return super().embed(clips).astype(np.float64)
+
+
+class ForgetsOnLoad(TrueStateEncoder):
+    """A checkpoint that does not restore what it embeds with."""
+
+    def __init__(self, spec, image_shape, seed):
+        super().__init__(spec, image_shape, seed)
+        self.offset = 0.0
+
+    def save(self, path):
+        self.offset = 1.0  # saving changes the live encoder, the file keeps nothing
+        path.write_bytes(b"")
+
+    def load(self, path):
+        self.offset = 0.0
+
+    def embed(self, clips):
+        return super().embed(clips) + np.float32(self.offset)
+'''
+
+
+def _check(capsys, name: str) -> tuple[int, list[str]]:
+    code = main(["check", "encoder", name])
+    out = capsys.readouterr()
+    return code, out.out.splitlines() + out.err.splitlines()
+
+
+@pytest.mark.parametrize("name", ["true-state", "random-state", "lite0-features"])
+def test_builtins_keep_the_contract(capsys, name):
+    code, lines = _check(capsys, name)
+    assert code == 0, lines
+    checks = {line.split()[1]: line.split()[0] for line in lines if line[:4] in ("ok  ", "FAIL", "skip")}
+    assert set(checks) == {"spec", "construct", "metadata", "fit", "embed", "embed_episode", "streaming",
+                           "determinism", "save-load"} and set(checks.values()) == {"ok"}
+
+
+@pytest.mark.slow
+def test_a_time_contrastive_builtin_keeps_the_contract(capsys):
+    code, lines = _check(capsys, "mftcn2")
+    assert code == 0, lines
+
+
+@pytest.mark.parametrize(("name", "failing"), [("off-by-one", "embed_episode"), ("wrong-dtype", "embed"),
+                                               ("forgets", "save-load")])
+def test_a_broken_plugin_fails_the_check_that_finds_it(capsys, tmp_path, monkeypatch, name, failing):
+    install(monkeypatch, tmp_path, "brokenplug", "0.1", {"enc": BROKEN},
+            {"off-by-one": "enc:EpisodeOffByOne", "wrong-dtype": "enc:WrongDtype", "forgets": "enc:ForgetsOnLoad"})
+    code, lines = _check(capsys, name)
+    assert code == 2
+    failed = [line for line in lines if line.startswith("FAIL")]
+    assert failed and failed[0].split()[1] == failing, lines
+    assert lines[-1].startswith("mftcn-bench: error: encoder") and "failed" in lines[-1]
+
+
+def test_an_unknown_encoder_is_one_line(capsys):
+    code, lines = _check(capsys, "mftcn3")
+    assert code == 2 and len(lines) == 1 and "did you mean" in lines[0]

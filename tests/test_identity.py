@@ -1,0 +1,106 @@
+"""Identities follow the code: a plugin's source or version, a collector's modules, and `--force`."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mftcn_bench import identity
+from mftcn_bench.runner import RunRequest, encoder_key_of, prepare, run, run_id_of
+from mftcn_bench.selection import code_label
+from mftcn_bench.store import ResultStore
+from tests.plugins import install
+
+ENCODER = "from mftcn_bench.encoders.baselines import TrueStateEncoder\n\n\nclass PlugEncoder(TrueStateEncoder):\n" \
+          "    pass\n"
+TINY = (("task.dataset.episode_length", 30), ("task.dataset.train_episodes", 3), ("task.dataset.test_episodes", 1),
+        ("task.dataset.height", 16), ("task.dataset.width", 24), ("task.probe.epochs", 3),
+        ("task.probe.hidden", [8]), ("task.probe.batch_size", 16))
+
+
+def _ids(name: str) -> tuple[str, str]:
+    prepared = prepare(RunRequest(name, "cartpole-probe", "smoke"))
+    return run_id_of(prepared, "same-data"), encoder_key_of(prepared, "same-data")
+
+
+def test_a_plugins_source_and_version_key_its_runs(tmp_path, monkeypatch):
+    plugin = install(monkeypatch, tmp_path, "idplug_a", "1.0", {"enc": ENCODER}, {"plug-state": "enc:PlugEncoder"})
+    first = _ids("plug-state")
+    assert _ids("plug-state") == first, "the same code and config give the same ids"
+    plugin.edit("enc", ENCODER + "    # a changed line\n")
+    edited = _ids("plug-state")
+    assert edited[0] != first[0] and edited[1] != first[1]
+    plugin.set_version("1.1")
+    bumped = _ids("plug-state")
+    assert bumped[0] not in (first[0], edited[0]) and bumped[1] != edited[1]
+    code = prepare(RunRequest("plug-state", "cartpole-probe", "smoke")).code.encoder
+    assert (code.distribution, code.version, code.is_plugin) == ("idplug_a", "1.1", True)
+
+
+def test_a_plugins_helper_module_keys_it_through_imports(tmp_path, monkeypatch):
+    """The closure follows the plugin's own imports (and into the harness), not only the entry module."""
+    modules = {"helper": "SCALE = 1\n",
+               "enc": "from idplug_b.helper import SCALE\n" + ENCODER}
+    plugin = install(monkeypatch, tmp_path, "idplug_b", "1.0", modules, {"plug-b": "enc:PlugEncoder"})
+    before = identity.code_identity("idplug_b.enc")
+    closure = [m for m, _ in identity._closure(("idplug_b.enc",), frozenset({"idplug_b", "mftcn_bench"}))]
+    assert "idplug_b.helper" in closure and "mftcn_bench.encoders.baselines" in closure
+    plugin.edit("helper", "SCALE = 2\n")
+    assert identity.code_identity("idplug_b.enc").source != before.source
+
+
+def test_dataset_ids_follow_the_collectors_code(tmp_path, monkeypatch):
+    """A dataset's id covers every module its collector imports: the cartpole collector's rendering code,
+    and for a plugin's collector its helpers."""
+    harness = [m for m, _ in identity._closure(("mftcn_bench.data.cartpole",), frozenset({"mftcn_bench"}))]
+    assert "mftcn_bench.rendering" in harness
+    assert "mftcn_bench.rl.ppo" not in harness, "a change to PPO does not re-collect cartpole's data"
+    modules = {"pixels": "VALUE = 1\n",
+               "collect": "from idplug_c import pixels\n\n\ndef collect(config, index):\n    return pixels.VALUE\n"}
+    plugin = install(monkeypatch, tmp_path, "idplug_c", "1.0", modules, {})
+    from mftcn_bench.data.dataset import dataset_id
+
+    def collector_id() -> str:
+        import importlib
+
+        return dataset_id({"name": "x", "seed": 0}, importlib.import_module("idplug_c.collect").collect)
+
+    first = collector_id()
+    assert collector_id() == first
+    plugin.edit("pixels", "VALUE = 2\n")
+    assert collector_id() != first
+
+
+def test_code_identity_does_not_hash_how_it_is_installed():
+    code = identity.code_identity("mftcn_bench.encoders.mftcn")
+    assert "editable" not in code.key() and code.distribution == "mftcn-bench"
+    assert identity.code_identity("mftcn_bench.encoders.mftcn") == code
+
+
+@pytest.mark.slow
+def test_force_never_leaves_two_results_under_one_id(home, monkeypatch):
+    from mftcn_bench.tasks.probe import CartpoleProbe as ProbeTask
+
+    request = RunRequest("true-state", "cartpole-probe", "smoke", 0, TINY)
+    first = run(request, home, show_progress=False).record
+    forced = RunRequest("true-state", "cartpole-probe", "smoke", 0, TINY, force=True)
+    again = run(forced, home, show_progress=False)
+    assert again.record.run_id == first.run_id and again.record.metrics == first.metrics
+    assert "the same metrics" in again.notes[-1]
+
+    evaluate = ProbeTask.evaluate
+
+    def shifted(self, encoder, dataset, workdir=None):  # a nondeterministic evaluation
+        result = evaluate(self, encoder, dataset, workdir)
+        result.metrics["average"] = float(np.float64(result.metrics["average"]) + 1.0)
+        return result
+
+    monkeypatch.setattr(ProbeTask, "evaluate", shifted)
+    with pytest.warns(UserWarning, match="gave other metrics"):
+        other = run(forced, home, show_progress=False).record
+    assert other.run_id != first.run_id and other.config["rerun_of"] == first.run_id
+    stored = {r.run_id: r for r in ResultStore(home.database).query()}
+    assert set(stored) == {first.run_id, other.run_id}
+    assert stored[first.run_id].metrics == first.metrics, "the first result stays under its id"
+    assert (home.runs / other.run_id / "result.json").exists() and (home.runs / first.run_id / "result.json").exists()
+    assert first.created_at and code_label(first) == "mftcn-bench " + first.config["code"]["encoder"]["version"]
