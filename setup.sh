@@ -20,5 +20,5 @@ PYTHON="${PYTHON:-python3}"
 .venv/bin/python -m pip install --quiet -e ".[dev]"
 
 if [ "${1:-}" != "--no-run" ]; then
-  .venv/bin/mftcn-bench run --encoder mftcn4 --task cartpole-probe --preset smoke
+  .venv/bin/mftcn-bench run --encoder mftcn4 --task cartpole-probe --preset demo
 fi

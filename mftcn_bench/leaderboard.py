@@ -101,10 +101,12 @@ def _by_task_and_preset(runs: Iterable[RunRecord]) -> dict[str, dict[str, list[R
 def _explain(rank: Ranking) -> str:
     better = "higher" if rank.higher_is_better else "lower"
     return (f"Ranked by {rank.label} (metric `{rank.metric}`, {better} is better). std: {STD_KIND}; "
-            f"IQM: interquartile mean with a percentile-bootstrap 95% interval, given from {IQM_MIN_SEEDS} "
-            f"seeds on. Only runs of the current spec files count (an overridden embedding size is its own "
-            f"entry); of repeated runs of one seed the latest counts. Encoder code: the distribution and version "
-            f"that shipped the encoder (a plugin's own). Date: the latest of the entry's runs.")
+            f"IQM: interquartile mean (the mean after cutting floor(n/4) of the n seeds from each end, so "
+            f"with fewer than 4 seeds nothing is cut and it is the mean) with a percentile-bootstrap 95% "
+            f"interval, given from {IQM_MIN_SEEDS} seeds on. Only runs of the current spec files count (an "
+            f"overridden embedding size is its own entry); of repeated runs of one seed the latest counts. "
+            f"Encoder code: the distribution and version that shipped the encoder (a plugin's own). Date: the "
+            f"latest of the entry's runs.")
 
 
 def render_boards(records: Iterable[RunRecord], accept: Accept = matches_current_specs) -> dict[str, str]:

@@ -3,8 +3,9 @@
 Groups `mftcn_bench.encoders` and `mftcn_bench.tasks`. An entry point's name is the variant
 (`mftcn5`, `cartpole-probe`), its value the implementing class. The variant's spec file is
 `specs/encoders/<name>.toml` or `specs/tasks/<name>.toml` inside the entry point's top-level package.
-Listing reads spec files only; the implementation is imported when a variant is used, so a plugin that
-fails to import costs a warning, never the rest of the harness.
+Resolving a name reads spec files only; the implementation is imported when a variant is used (and by
+`list`, which checks every one), so a plugin that fails to import costs a warning, never the rest of the
+harness.
 """
 
 from __future__ import annotations
@@ -108,5 +109,17 @@ def get(kind: Kind, name: str) -> Entry:
 
 
 def describe(kind: Kind) -> list[dict[str, Any]]:
-    """Rows for `mftcn-bench list`: name and one-line description."""
-    return [{"name": e.name, "description": e.description} for e in entries(kind).values()]
+    """Rows for `mftcn-bench list`: name, the distribution that ships it and one-line description. Each
+    implementation is imported, so an entry point naming a missing class or a module that fails to import
+    is reported (a warning) and left out, as a package without its spec file is."""
+    rows = []
+    for entry in entries(kind).values():
+        try:
+            entry.load()
+        except BenchError as exc:
+            warnings.warn(f"skipping {kind[:-1]} {entry.name!r}: {exc}", PluginWarning, stacklevel=2)
+            continue
+        dist = entry.entry_point.dist
+        shipped = f"{dist.metadata['Name']} {dist.version}" if dist is not None else "-"
+        rows.append({"name": entry.name, "from": shipped, "description": entry.description})
+    return rows

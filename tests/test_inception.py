@@ -69,8 +69,7 @@ def test_module_names_and_shapes_are_torchvisions():
     assert InceptionV3ToMixed5d()(torch.zeros(1, 3, 299, 299)).shape == (1, 288, 35, 35)
 
 
-def test_loads_a_torchvision_file_and_ignores_the_rest(tmp_path):
-    torch.set_num_threads(1)
+def test_loads_a_torchvision_file_and_ignores_the_rest(one_torch_thread, tmp_path):
     module = perturbed_module()
     encoder = InceptionEncoder(spec(torchvision_file(tmp_path, module)), image_shape=(24, 40), seed=0)
     assert encoder.needs_fit is False and encoder.info.embedding_dim == 288

@@ -55,8 +55,15 @@ def test_same_results_same_bytes_whatever_the_order(tmp_path):
 
 def test_iqm_column_from_three_seeds_and_tasks_without_a_board_are_named():
     runs = [make_record("pve", "cartpole-probe", s, {"average": v}, config=probe_config("pve"))
-            for s, v in enumerate((1.0, 2.0, 3.0))]
+            for s, v in enumerate((1.0, 2.0, 9.0))]
     runs.append(make_record("pve", "unknown-task", 0, {"x": 1.0}))
     files = render_boards(runs, accept=lambda r: True)
-    assert "| 2.0000 [" in files["cartpole-probe.md"]
+    # Three seeds: floor(3 / 4) = 0 values cut from each end, so the IQM is the mean (4.0), said on the board.
+    board = " ".join(files["cartpole-probe.md"].split())
+    assert "| 4.0000 ± 4.3589 | 4.0000 [1.0000, 9.0000] |" in board
+    assert "nothing is cut" in files["cartpole-probe.md"]
+    four = [make_record("pve", "cartpole-probe", s, {"average": v}, config=probe_config("pve"))
+            for s, v in enumerate((1.0, 2.0, 3.0, 10.0))]
+    four_board = " ".join(render_boards(four, accept=lambda r: True)["cartpole-probe.md"].split())
+    assert "| 4.0000 ± 4.0825 | 2.5000 [" in four_board
     assert "without a board" in files["README.md"] and "unknown-task" in files["README.md"]

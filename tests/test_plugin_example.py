@@ -24,6 +24,9 @@ def test_example_plugin_registers_and_runs(tmp_path):
 
     listing = cli("list", "encoders")
     assert listing.returncode == 0 and "pixel-pca" in listing.stdout and "Example plugin" in listing.stdout
+    check = cli("check", "encoder", "pixel-pca")
+    assert check.returncode == 0, check.stdout[-2000:] + check.stderr[-2000:]
+    assert "keeps the encoder contract" in check.stdout and "ok    embed_episode" in check.stdout
     run = cli("run", "--encoder", "pixel-pca", "--task", "cartpole-probe", "--preset", "smoke", "--no-progress")
     assert run.returncode == 0, run.stderr[-2000:]
     assert "pixel-pca on cartpole-probe" in run.stdout and "| Average" in run.stdout

@@ -3,6 +3,7 @@
 import pytest
 
 from mftcn_bench.cli import main
+from mftcn_bench.data.pouring_labels import MOTION, STATIC
 from mftcn_bench.store import ResultStore
 
 pytestmark = pytest.mark.slow
@@ -22,8 +23,12 @@ def test_smoke_runs_mftcn1_and_mftcn7_and_shows_an_episode(tmp_path, monkeypatch
     assert sorted(r.encoder for r in records) == ["mftcn1", "mftcn7"]
     for record in records:
         assert set(record.metrics) >= METRICS
-        for name in METRICS:
-            assert 0.0 <= record.metrics[name] <= 100.0, name
+        m = record.metrics
+        # The summaries are the means of their attributes' errors (a wrong grouping or scale fails here).
+        for summary, group in (("static_error", STATIC), ("motion_error", MOTION)):
+            parts = [m[f"error_{k}"] for k in group if m[f"error_{k}"] is not None]
+            assert m[summary] == pytest.approx(sum(parts) / len(parts))
+        assert all(0.0 <= m[name] <= 100.0 for name in METRICS if m[name] is not None)
     assert len(list((tmp_path / "home" / "datasets").glob("pouring-sim-*"))) == 1, "both runs share the dataset"
     assert main(["data", "show", "pouring", "--preset", "smoke", "--no-progress", "--out", str(tmp_path / "show"),
                  "--split", "test", "--episode", "1"]) == 0

@@ -69,6 +69,25 @@ def test_expert_is_trained_once_and_acts_like_the_trained_policy(tmp_path):
     action = expert.act([0.1, 0.2, 0.0, -0.3])
     assert action.shape == (1,) and -1.0 <= action[0] <= 1.0
     assert expert.act([0.1, 0.2, 0.0, -0.3]).tolist() == action.tolist()  # the mean action, no sampling
+    # The same networks as PPO trains from this seed (training is deterministic), acting by their mean:
+    import json
+
+    import numpy as np
+    from tensordict import TensorDict
+    from torchrl.envs import ExplorationType, set_exploration_type
+
+    from mftcn_bench.rl.observers import StateObserver
+
+    nets, _ = train_ppo(state_env_factory(ENV), PPO, 1, tmp_path / "again", lambda *a: None)
+    states = np.array([[0.1, 0.2, 0.0, -0.3], [-0.5, 3.0, 1.0, 2.0]])
+    obs = torch.from_numpy(StateObserver().push(None, np.ones(2, bool), states))
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        want = nets.policy(TensorDict({"observation": obs}, batch_size=[2])).get("action").double().numpy()
+    got = np.stack([expert.act(s) for s in states])
+    assert np.allclose(got, want, atol=1e-6) and not np.allclose(got[0], got[1])
+    summary = json.loads((path.parent / "expert.json").read_text())
+    returns = evaluate_policy(state_env_factory(ENV), nets, PPO.eval_episodes, 2, 1)
+    assert summary["return_mean"] == pytest.approx(float(returns.mean()))
 
 
 def test_running_normalizer_matches_numpy_over_all_batches():
@@ -139,3 +158,50 @@ def test_the_update_sees_the_normalisation_the_batch_was_collected_with(tmp_path
     monkeypatch.setattr(ppo, "_update", checked)
     _train(tmp_path)
     assert len(ratios) == 6 and max(ratios) < 1e-4, ratios
+
+
+def test_one_update_on_a_fixed_batch_against_hand_computed_steps():
+    """`_update`: advantages once per batch on scaled rewards (the caller's batch untouched), `epochs` passes
+    of shuffled minibatches covering every step, the summed losses' gradient clipped to `max_grad_norm`, and
+    the statistics averaged over minibatches."""
+    import math
+    from dataclasses import replace
+
+    from tensordict import TensorDict
+    from torch import nn
+
+    from mftcn_bench.rl.ppo import _update
+
+    batch = TensorDict({"observation": torch.randn(2, 5, 3), ("next", "reward"): torch.ones(2, 5, 1)},
+                       batch_size=[2, 5])
+    seen_rewards = []
+
+    def advantage(td):
+        seen_rewards.append(td.get(("next", "reward")).clone())
+        td.set("advantage", torch.zeros(*td.shape, 1))
+
+    class FixedLoss(nn.Module):
+        """loss_objective = 100 * sum(p) (gradient 100 per coordinate), loss_critic = 1, entropy = 0.5."""
+
+        def __init__(self):
+            super().__init__()
+            self.p = nn.Parameter(torch.zeros(3))
+            self.sizes = []
+
+        def forward(self, td):
+            self.sizes.append(td.shape[0])
+            assert "advantage" in td.keys()
+            one = torch.ones(())
+            return TensorDict({"loss_objective": 100 * self.p.sum(), "loss_critic": one, "entropy": one / 2}, [])
+
+    loss = FixedLoss()
+    config = replace(PPO, epochs=2, minibatch_size=4, max_grad_norm=0.5, reward_scale=0.1)
+    stats = _update(batch, loss, advantage, torch.optim.SGD(loss.parameters(), lr=1.0), config)
+    assert len(seen_rewards) == 1 and torch.allclose(seen_rewards[0], torch.full((2, 5, 1), 0.1))
+    assert torch.equal(batch.get(("next", "reward")), torch.ones(2, 5, 1)), "the caller's batch is not scaled"
+    assert loss.sizes == [4, 4, 2, 4, 4, 2]  # 10 steps in minibatches of 4, twice
+    # Each step moves p by lr * 0.5 along -(1, 1, 1) / sqrt(3): the clipped gradient, 6 times.
+    assert torch.allclose(loss.p.detach(), torch.full((3,), -6 * 0.5 / math.sqrt(3)), atol=1e-6)
+    assert stats["loss_critic"] == 1.0 and stats["entropy"] == 0.5
+    expected_objective = sum(100 * 3 * (-k * 0.5 / math.sqrt(3)) for k in range(6)) / 6
+    assert math.isclose(stats["loss_objective"], expected_objective, rel_tol=1e-5)

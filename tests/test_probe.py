@@ -53,3 +53,40 @@ def test_probe_reads_state_from_a_perfect_encoder_and_not_from_noise(tmp_path):
     assert np.isclose(bad["var_x_cart"], y[:, 0].var())
     baseline = mean_squared_error(y[:, 0], np.full(len(y), y[:, 0].mean()))
     assert bad["mse_x_cart"] > 0.8 * baseline and good["mse_x_cart"] < 0.2 * baseline
+
+
+def scaled_collector(config, index):
+    """The cart position (on a 1 cm scale, next to a theta_dot on a 10 rad/s scale) drawn into the fixed
+    camera's pixels only; the other camera sees noise."""
+    out = synthetic_collector(config, index)
+    t = np.arange(len(out["state"]))
+    rng = np.random.default_rng([11, index])
+    x = 0.01 * np.sin(t / 9.0 + index)
+    state = np.stack([x, rng.uniform(-np.pi, np.pi, len(t)), rng.normal(size=len(t)),
+                      10 * rng.normal(size=len(t))], axis=1)
+    frames = out["frames"]
+    frames[0] = np.round((x / 0.01 + 1) * 127).astype(np.uint8)[:, None, None, None]
+    frames[1] = rng.integers(0, 255, frames[1].shape, dtype=np.uint8)
+    return {**out, "state": state}
+
+
+class PixelEncoder(StateEncoder):
+    """Reads only pixels: the mean brightness of the clip's last frame."""
+
+    info = EncoderInfo("pixels", 1, 1, (8, 12), 1, 0)
+
+    def embed(self, clips):
+        return (clips.frames[:, -1].mean(axis=(1, 2, 3)) / 127.0 - 1.0)[:, None].astype(np.float32)
+
+
+def test_the_probe_reads_its_camera_and_weighs_a_small_scale_target(tmp_path):
+    """Standardised targets: the 1 cm cart position is learnt beside a theta_dot 1000x its scale; and the
+    probe embeds its own camera's frames (the other camera carries nothing)."""
+    config = probe_config()
+    dataset = ensure_dataset(tmp_path, config["dataset"], scaled_collector, show_progress=False)
+    fixed = CartpoleProbe(config, seed=0).evaluate(PixelEncoder(), dataset).metrics
+    assert fixed["r2_x_cart"] > 0.9 and fixed["var_x_cart"] < 1e-4
+    assert fixed["r2_theta_dot"] < 0.1, "nothing in the pixels says theta_dot"
+    other = {**config, "probe": {**config["probe"], "camera": "lookatcart"}}
+    wrong = CartpoleProbe(other, seed=0).evaluate(PixelEncoder(), dataset).metrics
+    assert wrong["r2_x_cart"] < 0.2

@@ -28,3 +28,15 @@ def test_broken_plugin_is_a_warning_and_the_rest_works(tmp_path, monkeypatch):
     with pytest.warns(registry.PluginWarning, match="broken"):
         found = registry.entries("encoders")
     assert "broken" not in found and "mftcn4" in found
+
+
+def test_list_reports_an_entry_point_that_names_a_missing_class(tmp_path, monkeypatch, capsys):
+    from mftcn_bench.cli import main
+    from tests.plugins import install
+
+    install(monkeypatch, tmp_path, "missingcls", "0.3", {"enc": "class Something:\n    pass\n"},
+            {"no-such-class": "enc:NotThere"})
+    assert main(["list", "encoders"]) == 0
+    out = capsys.readouterr()
+    assert "no-such-class" not in out.out and "mftcn4" in out.out and "mftcn-bench 0.1.0" in out.out
+    assert "skipping encoder 'no-such-class'" in out.err and "NotThere" in out.err

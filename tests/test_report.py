@@ -73,8 +73,9 @@ def test_probe_rows_are_matched_by_embedding_size_and_stale_runs_left_out():
 def test_latest_run_of_a_seed_counts():
     old = make_record("mftcn1", "pouring", 0, {"static_error": 40.0}, created_at="2026-01-01T00:00:00+00:00")
     new = make_record("mftcn1", "pouring", 0, {"static_error": 20.0}, created_at="2026-02-01T00:00:00+00:00")
-    (row,) = [r for r in table_rows(TABLES["pouring"], [new, old], accept=accept_all) if r.encoder == "mftcn1"]
-    assert row.seeds == 1 and row.stats[0].mean == 20.0
+    for order in ([old, new], [new, old]):  # the store returns oldest first; either way the latest counts
+        (row,) = [r for r in table_rows(TABLES["pouring"], order, accept=accept_all) if r.encoder == "mftcn1"]
+        assert row.seeds == 1 and row.stats[0].mean == 20.0
 
 
 def test_pouring_attribute_columns_and_paper_dashes(tmp_path):

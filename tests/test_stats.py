@@ -25,7 +25,20 @@ def test_four_seeds_mean_std_and_interquartile_mean():
     assert s.mean == 4.0
     assert s.std == pytest.approx(math.sqrt(50 / 3))  # deviations -3, -2, -1, 6: (9 + 4 + 1 + 36) / 3
     assert s.iqm == 2.5  # the outer quarter (1 and 10) cut: mean of 2 and 3
-    assert 1.0 <= s.ci_low <= s.iqm <= s.ci_high <= 10.0
+
+
+@pytest.mark.parametrize("values", [[10.0, 1.0, 3.0, 2.0], [0.3, 0.1, 0.7, 0.4, 0.9]])
+def test_bootstrap_interval_is_the_exact_resampling_distributions_percentiles(values):
+    """Every one of the n^n equally likely resamples enumerated: the 2.5 % and 97.5 % quantiles of their
+    IQM are the interval (10,000 random resamples find the same atoms of this discrete distribution)."""
+    import itertools
+
+    import numpy as np
+    from scipy.stats import trim_mean
+
+    exact = np.array([trim_mean(np.array(c), 0.25) for c in itertools.product(values, repeat=len(values))])
+    low, high = np.quantile(exact, [0.025, 0.975])
+    assert bootstrap_iqm_ci(values) == pytest.approx((low, high), abs=1e-9)
 
 
 def test_iqm_of_eight_values_keeps_the_middle_four():

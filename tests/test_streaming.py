@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-import torch
 
 from mftcn_bench.encoders.mftcn import MfTCNEncoder
 from mftcn_bench.encoders.streaming import StreamingEmbedder
@@ -36,8 +35,7 @@ def count_calls(net, method):
 
 
 @pytest.mark.parametrize("frames,stride,lookback", [(1, 1, 1), (5, 1, 5), (4, 4, 13), (5, 7, 29)])
-def test_streaming_equals_episode_embedding_across_boundaries(frames, stride, lookback):
-    torch.set_num_threads(1)
+def test_streaming_equals_episode_embedding_across_boundaries(one_torch_thread, frames, stride, lookback):
     encoder = make(frames, stride)
     assert encoder.info.lookback == lookback
     rng = np.random.default_rng(lookback)

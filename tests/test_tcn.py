@@ -124,8 +124,7 @@ def test_triplet_loss_value():
 
 
 @pytest.mark.parametrize("loss", ["npairs", "triplet"])
-def test_training_lowers_the_loss(tmp_path, loss):
-    torch.set_num_threads(1)
+def test_training_lowers_the_loss(one_torch_thread, tmp_path, loss):
     dataset = blob_dataset(tmp_path / "d")
     losses = []
     make(loss=loss).fit(dataset, FitBudget(40), lambda s, t, st: losses.append(st["loss"]), tmp_path / "w")
