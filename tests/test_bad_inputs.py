@@ -229,7 +229,7 @@ SPEC_CASES = {
                         ["unknown encoder 'mftcn3'; did you mean", "valid: ", "mftcn4"]),
     "unknown task": (["run", "--task", "cartpole-prob"],
                      ["unknown task 'cartpole-prob'; did you mean cartpole-probe?", "valid: cartpole-probe"]),
-    "unknown preset": (["run", "--preset", "smok"], ["unknown preset", "did you mean smoke?", "valid: demo, paper, quick"]),
+    "unknown preset": (["run", "--preset", "smok"], ["unknown preset", "did you mean smoke", "valid: demo, paper, quick"]),
     "unknown override key": (["run", "--set", "encoder.embeding_dim=8"],
                              ["unknown override key 'encoder.embeding_dim'", "did you mean encoder.embedding_dim"]),
     "override of the wrong type": (["run", "--set", "encoder.embedding_dim=eight"],
