@@ -4,7 +4,7 @@ trainer consumes (target >= 2x).
 Run: `pytest benchmarks/bench_dataset.py -q -s`.
 """
 
-from mftcn_bench import bench
+from mftcn_bench.perf import bench
 
 
 def test_dataset_read_ratio(record_rows, sizes, workdir):

@@ -4,7 +4,7 @@ state (target >= 0.5), and on true state against torchrl's SerialEnv of DMContro
 Run: `pytest benchmarks/bench_ppo.py -q -s`.
 """
 
-from mftcn_bench import bench
+from mftcn_bench.perf import bench
 
 
 def test_ppo_pixels_ratio(record_rows, sizes):

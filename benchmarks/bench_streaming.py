@@ -10,11 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mftcn_bench.core.registry import get
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.encoders.base import ClipBatch
 from mftcn_bench.encoders.mftcn import MfTCNEncoder
-from mftcn_bench.registry import get
-from mftcn_bench.specs import EncoderSpec
 
 ENVS = 8
 SHAPE = (48, 96)  # height, width
@@ -63,8 +63,8 @@ def test_reembed(benchmark, lookback):
 
 
 def test_streaming_cost_ratio(record_rows, sizes):
-    """Lookback 29 against lookback 1, alternated in one run (`mftcn_bench.bench.bench_streaming`; target
+    """Lookback 29 against lookback 1, alternated in one run (`mftcn_bench.perf.bench.bench_streaming`; target
     <= 1.5x the cost)."""
-    from mftcn_bench import bench
+    from mftcn_bench.perf import bench
 
     record_rows(bench.bench_streaming, sizes)

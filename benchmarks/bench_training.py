@@ -5,7 +5,7 @@ batched clips that share nothing (target >= 1.5x).
 Run: `pytest benchmarks/bench_training.py -q -s`.
 """
 
-from mftcn_bench import bench
+from mftcn_bench.perf import bench
 
 
 def test_training_ratio(record_rows, sizes, workdir):

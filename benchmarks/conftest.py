@@ -1,5 +1,5 @@
 """Benchmark settings and helpers: one torch thread, so figures are comparable on a shared 2-core machine;
-`record_rows` runs one of `mftcn_bench.bench`'s figures and records its ratio (never fails on speed).
+`record_rows` runs one of `mftcn_bench.perf.bench`'s figures and records its ratio (never fails on speed).
 
 Sizes: `QUICK` (CI) unless MFTCN_BENCH_SIZE=full.
 """
@@ -12,12 +12,12 @@ import os
 import pytest
 import torch
 
-from mftcn_bench import bench
+from mftcn_bench.perf import bench
 
 
 @pytest.fixture(autouse=True, scope="session")
 def one_thread():
-    from mftcn_bench.rendering import ensure_gl
+    from mftcn_bench.sim.rendering import ensure_gl
 
     ensure_gl()  # MUJOCO_GL=egl unless set, before anything imports dm_control
     previous = torch.get_num_threads()

@@ -11,7 +11,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 @pytest.fixture
 def home(tmp_path, monkeypatch):
-    from mftcn_bench.home import BenchHome
+    from mftcn_bench.core.home import BenchHome
 
     monkeypatch.setenv("MFTCN_BENCH_HOME", str(tmp_path / "home"))
     return BenchHome.resolve()

@@ -7,7 +7,7 @@ import importlib
 import sys
 from pathlib import Path
 
-from mftcn_bench import identity
+from mftcn_bench.core import identity
 
 TRUE_STATE_SPEC = (Path(__file__).resolve().parent.parent / "encoders" / "true-state.toml").read_text()
 

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from mftcn_bench import registry
-from mftcn_bench.provenance import content_hash
-from mftcn_bench.specs import resolve_config
-from mftcn_bench.store import RunRecord
+from mftcn_bench.core import registry
+from mftcn_bench.core.provenance import content_hash
+from mftcn_bench.core.specs import resolve_config
+from mftcn_bench.results.store import RunRecord
 
 
 def probe_config(encoder: str, preset: str = "quick", embedding_dim: int | None = None) -> dict:

@@ -24,10 +24,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from mftcn_bench import rendering
 from mftcn_bench.cli import main
 from mftcn_bench.data.synthetic import synthetic_collector
-from mftcn_bench.store import ResultStore
+from mftcn_bench.results.store import ResultStore
+from mftcn_bench.sim import rendering
 
 # A tiny cartpole-probe run: 3 + 1 synthetic episodes of 30 frames at 16x24, a 3-epoch probe.
 TINY_TASK = ["--preset", "smoke", "--no-progress",
@@ -229,7 +229,8 @@ SPEC_CASES = {
                         ["unknown encoder 'mftcn3'; did you mean", "valid: ", "mftcn4"]),
     "unknown task": (["run", "--task", "cartpole-prob"],
                      ["unknown task 'cartpole-prob'; did you mean cartpole-probe?", "valid: cartpole-probe"]),
-    "unknown preset": (["run", "--preset", "smok"], ["unknown preset", "did you mean smoke", "valid: demo, paper, quick"]),
+    "unknown preset": (["run", "--preset", "smok"],
+                       ["unknown preset", "did you mean smoke", "valid: demo, paper, quick"]),
     "unknown override key": (["run", "--set", "encoder.embeding_dim=8"],
                              ["unknown override key 'encoder.embeding_dim'", "did you mean encoder.embedding_dim"]),
     "override of the wrong type": (["run", "--set", "encoder.embedding_dim=eight"],
@@ -423,17 +424,17 @@ def test_checkpoint_with_a_pickled_object_is_refused(capsys, finished, tmp_path)
 
 def test_checkpoint_trained_at_another_resolution(capsys, finished):
     """An encoder checkpoint made for 16x24 frames, found where a 32x48 run looks for its encoder."""
-    from mftcn_bench.home import BenchHome
-    from mftcn_bench.runner import encoder_workdir, prepare, prepare_dataset
-    from mftcn_bench.specs import parse_override
+    from mftcn_bench.core.home import BenchHome
+    from mftcn_bench.core.specs import parse_override
+    from mftcn_bench.run.runner import encoder_workdir, prepare, prepare_dataset
 
     argv = [*TINY_MFTCN, "--set", "task.dataset.height=32", "--set", "task.dataset.width=48"]
     overrides = [parse_override(argv[i + 1]) for i, a in enumerate(argv) if a == "--set"]
-    from mftcn_bench.runner import RunRequest
+    from mftcn_bench.run.runner import RunRequest
 
     home = BenchHome.resolve(finished)
     prepared = prepare(RunRequest("mftcn1", "cartpole-probe", "smoke", 0, tuple(overrides)))
-    from mftcn_bench.specs import encoder_spec_from_config
+    from mftcn_bench.core.specs import encoder_spec_from_config
 
     spec = encoder_spec_from_config(prepared.encoder_entry.description, prepared.config["encoder"])
     encoder = prepared.encoder_entry.load()(spec, image_shape=(32, 48), seed=0)

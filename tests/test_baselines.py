@@ -2,11 +2,11 @@ import numpy as np
 import pytest
 import torch
 
-from mftcn_bench import registry
+from mftcn_bench.core import registry
+from mftcn_bench.core.errors import BenchError, SpecError
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.encoders.base import ClipBatch, Encoder, embed_episode
 from mftcn_bench.encoders.baselines import PixelsCNNEncoder, RandomStateEncoder, TrueStateEncoder
-from mftcn_bench.errors import BenchError, SpecError
-from mftcn_bench.specs import EncoderSpec
 
 CNN = {"channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "coords": True}
 

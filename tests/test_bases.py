@@ -6,6 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from mftcn_bench.core.errors import DataError, SpecError
+from mftcn_bench.core.registry import get
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.dataset import ensure_dataset
 from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.encoders.base import FeatureCacheUser, FitBudget, embed_episode
@@ -13,9 +16,6 @@ from mftcn_bench.encoders.bases import BaseConfig, FrozenBase, build_base, lite0
 from mftcn_bench.encoders.feature_cache import FeatureCache, ensure_feature_cache
 from mftcn_bench.encoders.frozen_features import FrozenFeaturesEncoder
 from mftcn_bench.encoders.mftcn import MfTCNEncoder
-from mftcn_bench.errors import DataError, SpecError
-from mftcn_bench.registry import get
-from mftcn_bench.specs import EncoderSpec
 
 LITE0 = {"name": "efficientnet-lite0", "layer": 4}  # a shallow cut keeps the tests fast
 TRAIN = {"steps": 4, "batch_timesteps": 4, "episodes_per_batch": 2, "alpha": 2, "lr": 1e-3,
@@ -181,7 +181,7 @@ def test_small_cnn_ablation_trains_its_base(tmp_path):
 
 def test_runs_share_one_feature_cache_and_record_it(tmp_path, monkeypatch):
     from mftcn_bench.cli import main
-    from mftcn_bench.store import ResultStore
+    from mftcn_bench.results.store import ResultStore
 
     monkeypatch.setattr("mftcn_bench.tasks.probe.collect_episode", synthetic_collector)
     task = ["--task", "cartpole-probe", "--preset", "smoke", "--no-progress", "--home", str(tmp_path / "home"),

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from mftcn_bench import bench, bench_probe
 from mftcn_bench.cli import main
+from mftcn_bench.perf import bench, bench_probe
 
 
 def row(ratio, target, value=1.0):
@@ -94,7 +94,7 @@ def test_bench_command_refuses_an_unknown_figure(capsys):
 def test_image_sized_offscreen_buffer_renders_the_same_pixels():
     """The renderer's speed-up (an offscreen buffer of the image's size, not the suite's 640x480) must not
     change a pixel: datasets keep their checksums."""
-    from mftcn_bench.rendering import MultiViewRenderer, ensure_gl
+    from mftcn_bench.sim.rendering import MultiViewRenderer, ensure_gl
 
     ensure_gl()
     from dm_control import suite

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from mftcn_bench.store import ResultStore
+from mftcn_bench.results.store import ResultStore
 
 pytestmark = pytest.mark.slow
 
@@ -102,10 +102,10 @@ def test_read_only_home_is_refused(tmp_path):
 
 def test_every_registered_encoder_runs_the_smoke_probe(smoke_home, monkeypatch):
     """Each encoder in the registry, in-process, on the already collected smoke dataset."""
-    from mftcn_bench import registry
-    from mftcn_bench.errors import BenchError
-    from mftcn_bench.home import BenchHome
-    from mftcn_bench.runner import RunRequest, run
+    from mftcn_bench.core import registry
+    from mftcn_bench.core.errors import BenchError
+    from mftcn_bench.core.home import BenchHome
+    from mftcn_bench.run.runner import RunRequest, run
 
     home = BenchHome.resolve(smoke_home)
     for name in registry.entries("encoders"):

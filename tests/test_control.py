@@ -5,7 +5,7 @@ import json
 import pytest
 
 from mftcn_bench.cli import main
-from mftcn_bench.store import ResultStore
+from mftcn_bench.results.store import ResultStore
 
 ENCODERS = ["true-state", "random-state", "pixels-cnn", "mftcn5"]
 

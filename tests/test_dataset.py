@@ -3,10 +3,10 @@ import json
 import numpy as np
 import pytest
 
+from mftcn_bench.core.errors import DataError
 from mftcn_bench.data.chunks import read_chunk, write_chunk
 from mftcn_bench.data.dataset import MultiViewDataset, ensure_dataset
 from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
-from mftcn_bench.errors import DataError
 
 
 def test_chunks_are_byte_deterministic_and_checked(tmp_path):

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from mftcn_bench.cli import main
-from mftcn_bench.store import ResultStore, RunRecord
+from mftcn_bench.results.store import ResultStore, RunRecord
 
 # Rendered cartpole: 3 + 1 episodes of 20 frames at 48x24; a small mfTCN trained 6 steps; a small probe.
 TASK = ["--task", "cartpole-probe", "--preset", "smoke", "--no-progress",

@@ -1,7 +1,7 @@
 import multiprocessing
 import time
 
-from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
+from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
 
 
 def _hold(lock, log, name):

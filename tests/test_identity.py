@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mftcn_bench import identity
-from mftcn_bench.runner import RunRequest, encoder_key_of, prepare, run, run_id_of
-from mftcn_bench.selection import code_label
-from mftcn_bench.store import ResultStore
+from mftcn_bench.core import identity
+from mftcn_bench.results.selection import code_label
+from mftcn_bench.results.store import ResultStore
+from mftcn_bench.run.runner import RunRequest, encoder_key_of, prepare, run, run_id_of
 from tests.plugins import install
 
 ENCODER = "from mftcn_bench.encoders.baselines import TrueStateEncoder\n\n\nclass PlugEncoder(TrueStateEncoder):\n" \
@@ -53,7 +53,7 @@ def test_dataset_ids_follow_the_collectors_code(tmp_path, monkeypatch):
     """A dataset's id covers every module its collector imports: the cartpole collector's rendering code,
     and for a plugin's collector its helpers."""
     harness = [m for m, _ in identity._closure(("mftcn_bench.data.cartpole",), frozenset({"mftcn_bench"}))]
-    assert "mftcn_bench.rendering" in harness
+    assert "mftcn_bench.sim.rendering" in harness
     assert "mftcn_bench.rl.ppo" not in harness, "a change to PPO does not re-collect cartpole's data"
     modules = {"pixels": "VALUE = 1\n",
                "collect": "from idplug_c import pixels\n\n\ndef collect(config, index):\n    return pixels.VALUE\n"}

@@ -2,13 +2,13 @@ import numpy as np
 import pytest
 import torch
 
+from mftcn_bench.core.errors import BenchError, SpecError
+from mftcn_bench.core.registry import get
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.encoders.base import ClipBatch, embed_episode
 from mftcn_bench.encoders.bases import BaseConfig, InceptionV3Base
 from mftcn_bench.encoders.frozen_features import FrozenFeaturesEncoder as InceptionEncoder
 from mftcn_bench.encoders.inception import InceptionV3ToMixed5d
-from mftcn_bench.errors import BenchError, SpecError
-from mftcn_bench.registry import get
-from mftcn_bench.specs import EncoderSpec
 
 # Shapes of torchvision's Inception3 (torchvision/models/inception.py) for a sample of entries.
 TORCHVISION_SHAPES = {

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from mftcn_bench.data.chunks import read_chunk
-from mftcn_bench.store import ResultStore
+from mftcn_bench.results.store import ResultStore
 
 pytestmark = pytest.mark.slow
 
@@ -35,10 +35,10 @@ SMALL = ["--preset", "smoke", "--no-progress", "--set", "task.dataset.episode_le
 def synthetic_dataset(home: Path, args: list[str]) -> None:
     """Make the dataset `mftcn-bench run *args` needs with the synthetic collector (nothing rendered): the
     run finds it (a dataset's id is its config) and goes straight to the encoder."""
+    from mftcn_bench.core.specs import parse_override
     from mftcn_bench.data.dataset import ensure_dataset
     from mftcn_bench.data.synthetic import synthetic_collector
-    from mftcn_bench.runner import RunRequest, prepare
-    from mftcn_bench.specs import parse_override
+    from mftcn_bench.run.runner import RunRequest, prepare
 
     overrides = tuple(parse_override(args[i + 1]) for i, a in enumerate(args) if a == "--set")
     prepared = prepare(RunRequest(args[args.index("--encoder") + 1], "cartpole-probe", "smoke", 0, overrides))
@@ -240,8 +240,8 @@ def test_four_concurrent_runs_share_one_dataset_and_lose_no_row(tmp_path):
 
 def test_a_checkpoint_without_its_completion_marker_is_fitted_again(tmp_path):
     """A plugin's `save` cut off by a kill leaves `model.pt` but no `fit.json`: never taken as finished."""
-    from mftcn_bench.runner import _fit_or_load
-    from mftcn_bench.specs import EncoderSpec
+    from mftcn_bench.core.specs import EncoderSpec
+    from mftcn_bench.run.runner import _fit_or_load
 
     class Recording:
         def __init__(self):

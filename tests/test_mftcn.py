@@ -2,14 +2,14 @@ import numpy as np
 import pytest
 import torch
 
+from mftcn_bench.core.errors import TrainingError
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.dataset import ensure_dataset
 from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.encoders import training
 from mftcn_bench.encoders.base import ClipBatch, FitBudget, embed_episode
 from mftcn_bench.encoders.mftcn import MfTCNEncoder
 from mftcn_bench.encoders.training import EpisodePool, gather_clips
-from mftcn_bench.errors import TrainingError
-from mftcn_bench.specs import EncoderSpec
 
 SMALL_CNN = {"name": "small-cnn", "channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "coords": True}
 MODEL = {"adapter_channels": 8, "temporal_channels": 8, "base": SMALL_CNN}

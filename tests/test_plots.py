@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mftcn_bench.plots import mean_curve, plot_curves, plot_pouring_lookback, plot_probe_lookback
+from mftcn_bench.results.plots import mean_curve, plot_curves, plot_pouring_lookback, plot_probe_lookback
 from tests.records import make_record
 
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -4,7 +4,7 @@ import pytest
 
 from mftcn_bench.cli import main
 from mftcn_bench.data.pouring_labels import MOTION, STATIC
-from mftcn_bench.store import ResultStore
+from mftcn_bench.results.store import ResultStore
 
 pytestmark = pytest.mark.slow
 

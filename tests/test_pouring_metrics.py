@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
+from mftcn_bench.core.errors import SpecError
 from mftcn_bench.data.dataset import ensure_dataset
 from mftcn_bench.data.pouring_labels import LABELS, TILT_CLASSES, class_balance, labels_from_state, tilt_class
 from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.encoders.base import EncoderInfo
-from mftcn_bench.errors import SpecError
 from mftcn_bench.tasks.pouring import PouringTask, summarize
 from mftcn_bench.tasks.pouring_metrics import (
     alignment_error,

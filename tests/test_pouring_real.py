@@ -10,10 +10,10 @@ from tfrecord import example_pb2
 from tfrecord.writer import TFRecordWriter
 
 from mftcn_bench.cli import main
+from mftcn_bench.core.errors import DataError
 from mftcn_bench.data.dataset import ensure_dataset
 from mftcn_bench.data.pouring_labels import LABELS
 from mftcn_bench.data.pouring_real import RealLayoutError, check_layout
-from mftcn_bench.errors import DataError
 from mftcn_bench.tasks.pouring import PouringTask
 
 H, W = 24, 32  # stored frame size; the dataset resizes to 8 x 12

@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mftcn_bench.core.errors import DataError
 from mftcn_bench.data.pouring_labels import LABELS, STATE_COLUMNS
 from mftcn_bench.data.pouring_scene import scene_xml
 from mftcn_bench.data.pouring_sim import collect_episode
-from mftcn_bench.errors import DataError
 
 SPEC = Path(__file__).resolve().parents[1] / "tasks" / "pouring.toml"
 

@@ -51,7 +51,7 @@ def test_killed_run_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
 
 
 def test_truncated_checkpoint_is_refused_with_one_line(tmp_path):
-    from mftcn_bench.errors import TrainingError
+    from mftcn_bench.core.errors import TrainingError
 
     with pytest.raises(Stop):
         _train(tmp_path, stop_after=1)

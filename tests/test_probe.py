@@ -1,10 +1,11 @@
 import numpy as np
 from sklearn.metrics import mean_squared_error
 
+from mftcn_bench.data.cartpole import TARGETS, state_targets
 from mftcn_bench.data.dataset import ensure_dataset
 from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.encoders.base import EncoderInfo
-from mftcn_bench.tasks.probe import TARGETS, CartpoleProbe, probe_features, state_targets, summarize
+from mftcn_bench.tasks.probe import CartpoleProbe, probe_features, summarize
 
 
 def test_targets_and_features():

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from mftcn_bench import registry
-from mftcn_bench.leaderboard import ranking, render_boards
-from mftcn_bench.provenance import TRACKED_PACKAGES
-from mftcn_bench.results_io import import_results, record_from_json
-from mftcn_bench.store import ResultStore
+from mftcn_bench.core import registry
+from mftcn_bench.core.provenance import TRACKED_PACKAGES
+from mftcn_bench.results.leaderboard import ranking, render_boards
+from mftcn_bench.results.records_io import import_results, record_from_json
+from mftcn_bench.results.store import ResultStore
 
 RESULTS = Path(__file__).resolve().parent.parent / "results"
 FILES = sorted(RESULTS.glob("*.json"))
@@ -47,3 +47,12 @@ def test_the_records_import_and_rank(tmp_path):
     boards = render_boards(store.query())
     for record in store.query():
         assert f"| {record.encoder} " in boards[f"{record.task}.md"], record.run_id
+
+
+def test_the_results_document_is_generated_from_these_records(capsys):
+    """docs/RESULTS.md's tables are exactly what `mftcn-bench results doc` renders from results/."""
+    from mftcn_bench.cli import main
+
+    document = RESULTS.parent / "docs" / "RESULTS.md"
+    code = main(["results", "doc", str(document), "--records", str(RESULTS), "--check"])
+    assert code == 0, capsys.readouterr().err

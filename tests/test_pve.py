@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 import torch
 
+from mftcn_bench.core.errors import SpecError, TrainingError
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.dataset import ensure_dataset
 from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.encoders import pve
@@ -19,8 +21,6 @@ from mftcn_bench.encoders.pve import (
     variation_loss,
 )
 from mftcn_bench.encoders.training import EpisodePool
-from mftcn_bench.errors import SpecError, TrainingError
-from mftcn_bench.specs import EncoderSpec
 
 MODEL = {"channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "coords": True}
 TRAIN = {"steps": 6, "batch_size": 8, "lr": 1e-3, "weight_decay": 0.0, "camera_index": 0, "episode_pool": 2,

@@ -2,8 +2,8 @@ import sys
 
 import pytest
 
-from mftcn_bench import registry
-from mftcn_bench.errors import SpecError
+from mftcn_bench.core import registry
+from mftcn_bench.core.errors import SpecError
 
 
 def test_builtins_are_registered_with_specs():
@@ -40,3 +40,32 @@ def test_list_reports_an_entry_point_that_names_a_missing_class(tmp_path, monkey
     out = capsys.readouterr()
     assert "no-such-class" not in out.out and "mftcn4" in out.out and "mftcn-bench 0.1.0" in out.out
     assert "skipping encoder 'no-such-class'" in out.err and "NotThere" in out.err
+
+
+def test_a_family_entry_point_serves_every_spec_of_its_family(tmp_path, monkeypatch):
+    """One entry point `<family>.family`; variants are spec files (a template `_name.toml` is not one), and a
+    new spec file is a new variant without reinstalling anything."""
+    from tests.plugins import install
+
+    plugin = install(monkeypatch, tmp_path, "famplug", "1.0", {"enc": "from mftcn_bench.encoders.baselines import "
+                     "TrueStateEncoder as Enc\n"}, {"fam.family": "enc:Enc"})
+    folder = tmp_path / "famplug" / "specs" / "encoders"
+    (folder / "fam.family.toml").unlink()  # the helper writes one spec per entry point; a family has none
+    (folder / "_base.toml").write_text('family = "fam"\ndescription = "base"\nembedding_dim = 5\n[train]\nsteps = 0\n')
+    (folder / "fam-a.toml").write_text('extends = "_base"\ndescription = "variant a"\n')
+    (folder / "other.toml").write_text('family = "not-fam"\ndescription = "x"\n')
+    found = registry.entries("encoders")
+    assert "fam-a" in found and "_base" not in found and "other" not in found and "fam.family" not in found
+    assert found["fam-a"].spec.description == "variant a" and found["fam-a"].spec.embedding_dim == 5
+    assert found["fam-a"].entry_point.value == "famplug.enc:Enc"
+    (folder / "fam-b.toml").write_text('extends = "fam-a"\ndescription = "variant b"\nframes = 2\n')
+    assert registry.get("encoders", "fam-b").spec.frames == 2
+    assert plugin.dist.exists()
+
+
+def test_the_mftcn_variants_are_spec_files_of_one_family():
+    encoders = registry.entries("encoders")
+    mftcn = sorted(name for name, e in encoders.items() if e.spec.family == "mftcn")
+    assert mftcn == ["mftcn1", "mftcn13", "mftcn2", "mftcn29", "mftcn4", "mftcn5", "mftcn7"]
+    assert {encoders[n].registered_by.name for n in mftcn} == {"mftcn.family"}
+    assert encoders["mftcn29"].spec.lookback == 29 and encoders["mftcn29"].spec.model["base"]["layer"] == 10

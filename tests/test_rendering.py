@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from mftcn_bench import rendering
+from mftcn_bench.core.errors import DataError, SystemRequirementError
 from mftcn_bench.data.cartpole import collect_episode
-from mftcn_bench.errors import DataError, SystemRequirementError
+from mftcn_bench.sim import rendering
 
 CONFIG = {"seed": 3, "cameras": ["fixed", "lookatcart"], "height": 24, "width": 32, "episode_length": 12,
           "action_keep_prob": 0.5, "action_repeat": 1, "render": {"shadowsize": 16, "offsamples": 0},

@@ -4,11 +4,11 @@ import copy
 
 import pytest
 
-from mftcn_bench import registry
-from mftcn_bench.paper_tables import TABLES
-from mftcn_bench.report import NOT_IN_PAPER, matches_current_specs, render, report, table_rows
-from mftcn_bench.specs import resolve_config
-from mftcn_bench.store import ResultStore, RunRecord
+from mftcn_bench.core import registry
+from mftcn_bench.core.specs import resolve_config
+from mftcn_bench.results.paper_tables import TABLES
+from mftcn_bench.results.report import NOT_IN_PAPER, matches_current_specs, render, report, table_rows
+from mftcn_bench.results.store import ResultStore, RunRecord
 from tests.records import make_record, probe_config
 
 

@@ -6,8 +6,8 @@ from dataclasses import asdict
 import pytest
 
 from mftcn_bench.cli import main
-from mftcn_bench.results_io import ResultsFileError, export_results, import_results
-from mftcn_bench.store import ResultStore
+from mftcn_bench.results.records_io import ResultsFileError, export_results, import_results
+from mftcn_bench.results.store import ResultStore
 from tests.records import make_record
 
 CURVES = {"train": {"frames": [0.0, 1000.0], "wall_s": [0.0, 2.5], "return": [10.0, 50.0]}}

@@ -3,9 +3,9 @@ import itertools
 import numpy as np
 import pytest
 
+from mftcn_bench.core.errors import DataError
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.encoders.sampling import plan_batch, sample_timesteps
-from mftcn_bench.errors import DataError
 
 
 @pytest.mark.parametrize("length,count,gap", [(100, 8, 10), (50, 5, 12), (30, 1, 5), (29, 4, 9)])

@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
+from mftcn_bench.core.errors import DataError
 from mftcn_bench.data.show import caption_lines, contact_sheet, write_video
-from mftcn_bench.errors import DataError
 
 
 def episode(views=2, length=20):

@@ -1,7 +1,7 @@
 import pytest
 
-from mftcn_bench.errors import SpecError
-from mftcn_bench.specs import EncoderSpec, TaskSpec, apply_overrides, parse_override, parse_toml, resolve_config
+from mftcn_bench.core.errors import SpecError
+from mftcn_bench.core.specs import EncoderSpec, TaskSpec, apply_overrides, parse_override, parse_toml, resolve_config
 
 ENCODER = EncoderSpec("e", "mftcn", "d", 4, 1, 32, {"coords": True}, {"steps": 100, "lr": 0.001})
 TASK = TaskSpec("t", "d", "quick", {"dataset": {"episodes": 10, "cameras": ["a"]}, "probe": {"epochs": 5}},
@@ -82,7 +82,34 @@ def test_encoder_defaults_task_wide_then_preset_then_overrides():
 @pytest.mark.parametrize("encoder", ["true-state", "random-state"])
 def test_state_encoders_take_the_pouring_state_size_from_the_task(encoder):
     from mftcn_bench.data.pouring_labels import STATE_COLUMNS
-    from mftcn_bench.runner import RunRequest, prepare
+    from mftcn_bench.run.runner import RunRequest, prepare
 
     config = prepare(RunRequest(encoder, "pouring", "smoke")).config
     assert config["encoder"]["embedding_dim"] == len(STATE_COLUMNS)
+
+
+def test_extends_merges_tables_and_a_dataset_reference_is_its_file():
+    from mftcn_bench.core.specs import load_spec_tree
+
+    files = {("tasks", "base"): 'description = "b"\ndataset = "d"\n[probe]\nlr = 1\nepochs = 2\n',
+             ("tasks", "child"): 'extends = "base"\n[probe]\nlr = 3\n[dataset]\nheight = 9\n',
+             ("datasets", "d"): 'name = "d"\nheight = 4\nwidth = 5\n[render]\nshadowsize = 16\n',
+             ("tasks", "loop-a"): 'extends = "loop-b"\n', ("tasks", "loop-b"): 'extends = "loop-a"\n'}
+    def read(folder, name):
+        return files[(folder, name)]
+
+    child = load_spec_tree("tasks", "child", read, "x")
+    assert child == {"description": "b", "probe": {"lr": 3, "epochs": 2},
+                     "dataset": {"name": "d", "height": 9, "width": 5, "render": {"shadowsize": 16}}}
+    with pytest.raises(SpecError, match="extends` loops"):
+        load_spec_tree("tasks", "loop-a", read, "x")
+
+
+def test_tasks_share_the_named_dataset():
+    from mftcn_bench.core import registry
+
+    tables = {name: registry.get("tasks", name).spec.tables["dataset"]
+              for name in ("cartpole-probe", "swingup", "swingup-160", "swingup-moving")}
+    assert tables["cartpole-probe"] == tables["swingup"] and tables["swingup-160"] == tables["swingup-moving"]
+    assert {k: v for k, v in tables["swingup-160"].items() if k not in ("height", "width")} == \
+        {k: v for k, v in tables["swingup"].items() if k not in ("height", "width")}

@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from mftcn_bench.stats import STD_KIND, bootstrap_iqm_ci, format_iqm, format_mean_std, iqm, seed_stats
+from mftcn_bench.results.stats import STD_KIND, bootstrap_iqm_ci, format_iqm, format_mean_std, iqm, seed_stats
 
 
 def test_one_seed_has_no_std_and_no_iqm():

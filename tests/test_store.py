@@ -1,6 +1,6 @@
 import multiprocessing
 
-from mftcn_bench.store import ResultStore, RunRecord
+from mftcn_bench.results.store import ResultStore, RunRecord
 
 
 def record(run_id, encoder="mftcn4", metric=1.0, preset="quick"):

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.encoders.mftcn import MfTCNEncoder
 from mftcn_bench.encoders.streaming import StreamingEmbedder
-from mftcn_bench.specs import EncoderSpec
 
 SHAPE = (16, 24)
 MODEL = {"adapter_channels": 8, "temporal_channels": 8,

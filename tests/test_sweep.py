@@ -4,10 +4,10 @@ local Ray instance (identical metrics for the same seeds), and a rerun that redo
 import pytest
 
 from mftcn_bench.cli import main
-from mftcn_bench.errors import SpecError
-from mftcn_bench.home import BenchHome
-from mftcn_bench.store import ResultStore
-from mftcn_bench.sweep import SweepRequest, parse_seeds, run_sweep
+from mftcn_bench.core.errors import SpecError
+from mftcn_bench.core.home import BenchHome
+from mftcn_bench.orchestration.sweep import SweepRequest, parse_seeds, run_sweep
+from mftcn_bench.results.store import ResultStore
 
 # Rendering costs ~3 ms a frame: 3 episodes of 30 frames x 2 views; encoders without training.
 TINY = ("task.dataset.train_episodes=2", "task.dataset.test_episodes=1", "task.dataset.episode_length=30",
@@ -17,7 +17,7 @@ SEEDS = (0, 1)
 
 
 def tiny_overrides():
-    from mftcn_bench.specs import parse_override
+    from mftcn_bench.core.specs import parse_override
 
     return tuple(parse_override(o) for o in TINY)
 

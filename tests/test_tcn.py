@@ -2,6 +2,9 @@ import numpy as np
 import pytest
 import torch
 
+from mftcn_bench.core.errors import SpecError
+from mftcn_bench.core.registry import get
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.dataset import ensure_dataset
 from mftcn_bench.data.synthetic import synthetic_config
 from mftcn_bench.encoders.base import ClipBatch, FitBudget, embed_episode
@@ -11,9 +14,6 @@ from mftcn_bench.encoders.tcn import (
     spatial_soft_argmax,
     triplet_loss,
 )
-from mftcn_bench.errors import SpecError
-from mftcn_bench.registry import get
-from mftcn_bench.specs import EncoderSpec
 
 MODEL = {"conv_channels": [], "hidden": [], "temperature": 1.0, "learn_temperature": True,
          "base": {"name": "small-cnn", "channels": [8, 8], "kernels": [3, 3], "strides": [2, 1], "coords": False}}

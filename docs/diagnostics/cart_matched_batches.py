@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from sklearn.neural_network import MLPRegressor
 
-from mftcn_bench import registry
+from mftcn_bench.core import registry
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.losses import multiview_npairs_loss
 from mftcn_bench.encoders.mftcn import MfTCNModelConfig, MfTCNNet

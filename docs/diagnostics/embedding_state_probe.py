@@ -26,13 +26,13 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.metrics import r2_score
 from sklearn.preprocessing import StandardScaler
 
-from mftcn_bench import registry
-from mftcn_bench.data.expert_demos import ExpertDemoCollector
+from mftcn_bench.core import registry
+from mftcn_bench.core.home import BenchHome
 from mftcn_bench.encoders.base import Encoder, embed_episode
 from mftcn_bench.encoders.baselines import state_embedding
-from mftcn_bench.home import BenchHome
-from mftcn_bench.rendering import ensure_gl
-from mftcn_bench.runner import PreparedRun, RunRequest, build_encoder, prepare, prepare_dataset
+from mftcn_bench.rl.demos import ExpertDemoCollector
+from mftcn_bench.run.runner import PreparedRun, RunRequest, build_encoder, prepare, prepare_dataset
+from mftcn_bench.sim.rendering import ensure_gl
 from mftcn_bench.tasks.probe import ProbeConfig, probe_features, probe_regressor
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mftcn_bench import registry
+from mftcn_bench.core import registry
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.mftcn import MfTCNModelConfig, MfTCNNet
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from mftcn_bench.rendering import MultiViewRenderer, ensure_gl
+from mftcn_bench.sim.rendering import MultiViewRenderer, ensure_gl
 
 
 def camera_names() -> list[str]:
@@ -63,3 +63,14 @@ def collect_episode(config: Mapping[str, Any], index: int) -> dict[str, np.ndarr
         for _ in range(int(config["action_repeat"])):
             env.step(action[t])
     return {"frames": frames, "state": state, "action": action}
+
+
+# The state a cartpole probe or policy is asked for: the pole's angle as sin and cos (a spinning pole's
+# angle is unbounded), in this order. Shared by the probe task, the state encoders and the paper tables.
+TARGETS = ("x_cart", "sin_theta", "cos_theta", "x_dot", "theta_dot")
+
+
+def state_targets(state: np.ndarray) -> np.ndarray:
+    """Simulator state [T, 4] (x, theta, x_dot, theta_dot) -> targets [T, 5] in TARGETS order."""
+    x, theta, x_dot, theta_dot = state.T
+    return np.stack([x, np.sin(theta), np.cos(theta), x_dot, theta_dot], axis=1)

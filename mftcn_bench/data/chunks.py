@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mftcn_bench.errors import DataError
-from mftcn_bench.fileio import atomic_write_bytes
-from mftcn_bench.provenance import file_sha256
+from mftcn_bench.core.errors import DataError
+from mftcn_bench.core.fileio import atomic_write_bytes
+from mftcn_bench.core.provenance import file_sha256
 
 FIXED_TIME = (1980, 1, 1, 0, 0, 0)
 

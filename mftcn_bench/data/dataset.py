@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from mftcn_bench import identity
+from mftcn_bench.core import identity
+from mftcn_bench.core.errors import DataError
+from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock, resume_folder
+from mftcn_bench.core.provenance import content_hash, versions
 from mftcn_bench.data.chunks import read_chunk, write_chunk
-from mftcn_bench.errors import DataError
-from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock, resume_folder
-from mftcn_bench.provenance import content_hash, versions
 
 FORMAT_VERSION = 1
 SPLITS = ("train", "val", "test")  # "val" only holds episodes when the config asks for val_episodes

@@ -26,8 +26,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from mftcn_bench.core.errors import DataError
 from mftcn_bench.data.pouring_labels import LABELS, UNKNOWN
-from mftcn_bench.errors import DataError
 
 VIEWS = ("view0", "view1")
 REAL_LABELS = {"contact": "contact", "within_distance": "distance", "liquid_flowing": "liquid_flowing",

@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
+from mftcn_bench.core.errors import DataError
 from mftcn_bench.data.pouring_labels import STATE_COLUMNS, labels_from_state
 from mftcn_bench.data.pouring_scene import CAMERAS, bead_radii, scene_xml
-from mftcn_bench.errors import DataError
-from mftcn_bench.rendering import MultiViewRenderer, ensure_gl
+from mftcn_bench.sim.rendering import MultiViewRenderer, ensure_gl
 
 Z = np.array([0.0, 0.0, 1.0])
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mftcn_bench.errors import DataError
+from mftcn_bench.core.errors import DataError
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 

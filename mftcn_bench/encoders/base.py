@@ -15,9 +15,9 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
+from mftcn_bench.core.errors import BenchError
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.errors import BenchError
 
 if TYPE_CHECKING:
     from torch import nn

@@ -24,13 +24,13 @@ import numpy as np
 import torch
 from torch import nn
 
+from mftcn_bench.core.errors import BenchError, SpecError
+from mftcn_bench.core.specs import EncoderSpec
+from mftcn_bench.data.cartpole import state_targets
 from mftcn_bench.encoders.base import ClipBatch
 from mftcn_bench.encoders.bases import SmallCNN
 from mftcn_bench.encoders.common import FrameHeadEncoder, SpecEncoder, load_payload, parse_table, save_payload
 from mftcn_bench.encoders.frame_cnn import CNNConfig
-from mftcn_bench.errors import BenchError, SpecError
-from mftcn_bench.specs import EncoderSpec
-from mftcn_bench.tasks.probe import state_targets
 
 CARTPOLE_STATE_COLUMNS = 4  # x, theta, x_dot, theta_dot: mapped to the probe's five targets
 

@@ -30,8 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from mftcn_bench.errors import BenchError, SpecError
-from mftcn_bench.provenance import file_sha256
+from mftcn_bench.core.errors import BenchError, SpecError
+from mftcn_bench.core.provenance import file_sha256
 
 BASES = ("efficientnet-lite0", "inception-v3", "small-cnn")
 LITE0_BLOCKS = 16

@@ -17,10 +17,9 @@
 
 from __future__ import annotations
 
-import os
+import io
 import pickle
 from collections.abc import Callable, Mapping
-from dataclasses import fields
 from pathlib import Path
 from typing import Any, TypeVar, cast
 
@@ -28,34 +27,28 @@ import numpy as np
 import torch
 from torch import nn
 
+from mftcn_bench.core.errors import BenchError, SpecError
+from mftcn_bench.core.fileio import atomic_write_bytes
+from mftcn_bench.core.specs import EncoderSpec
+from mftcn_bench.core.specs import parse_table as parse_spec_table
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import ClipBatch, EncoderInfo, FitBudget, ProgressFn
 from mftcn_bench.encoders.streaming import FrameHeadNet
-from mftcn_bench.errors import BenchError, SpecError
-from mftcn_bench.specs import EncoderSpec
 
 T = TypeVar("T")
 
 
 def parse_table(cls: type[T], encoder: str, section: str, table: Mapping[str, Any]) -> T:
-    """A dataclass from a spec table; unknown or missing keys are a one-line SpecError."""
-    known = [f.name for f in fields(cls)]  # type: ignore[arg-type] - cls is a dataclass
-    unknown = sorted(set(table) - set(known))
-    if unknown:
-        raise SpecError(f"encoder {encoder!r}: bad [{section}] table: unknown key(s) {unknown}; "
-                        f"allowed: {sorted(known)}")
-    try:
-        return cls(**dict(table))
-    except TypeError as exc:
-        raise SpecError(f"encoder {encoder!r}: bad [{section}] table ({exc})") from None
+    """`core.specs.parse_table` for an encoder's `[model]` or `[train]` table."""
+    return parse_spec_table(cls, f"encoder {encoder!r}", section, table)
 
 
 def save_payload(path: Path, payload: Any) -> None:
-    """`torch.save` to a temporary file beside `path`, then renamed over it."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    """`torch.save`, written atomically (`atomic_write_bytes`: flushed to disk, then renamed over `path`)."""
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    atomic_write_bytes(path, buffer.getvalue())
 
 
 def load_failure(exc: BaseException) -> str:

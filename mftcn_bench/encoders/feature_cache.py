@@ -30,11 +30,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from mftcn_bench import identity
+from mftcn_bench.core import identity
+from mftcn_bench.core.errors import DataError
+from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock, resume_folder
+from mftcn_bench.core.provenance import file_sha256
 from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.errors import DataError
-from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock, resume_folder
-from mftcn_bench.provenance import file_sha256
 
 FORMAT_VERSION = 1
 

@@ -18,11 +18,11 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from mftcn_bench.core.errors import SpecError
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
 from mftcn_bench.encoders.bases import BaseConfig, SmallCNN
 from mftcn_bench.encoders.training import BatchLoss, run_training
-from mftcn_bench.errors import SpecError
 
 
 @dataclass(frozen=True, kw_only=True)

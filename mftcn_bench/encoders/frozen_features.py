@@ -11,10 +11,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from mftcn_bench.core.errors import SpecError
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.encoders.bases import build_base
 from mftcn_bench.encoders.mftcn import OnBaseEncoder, OnBaseNet, parse_base
-from mftcn_bench.errors import SpecError
-from mftcn_bench.specs import EncoderSpec
 
 
 class SpatialMeanNet(OnBaseNet):

@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from mftcn_bench.errors import BenchError
+from mftcn_bench.core.errors import BenchError
 
 WEIGHTS_FILE = "inception_v3_google-0cc3c7bd.pth"
 PREFIXES = ("Conv2d_1a_3x3", "Conv2d_2a_3x3", "Conv2d_2b_3x3", "Conv2d_3b_1x1", "Conv2d_4a_3x3",

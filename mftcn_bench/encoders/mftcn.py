@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from mftcn_bench.core.errors import SpecError
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
@@ -31,8 +33,6 @@ from mftcn_bench.encoders.common import FrameHeadEncoder, check_image_shape, map
 from mftcn_bench.encoders.feature_cache import FeatureCache, base_features
 from mftcn_bench.encoders.streaming import StreamingEmbedder
 from mftcn_bench.encoders.training import ContrastiveTrainConfig, train_multiview
-from mftcn_bench.errors import SpecError
-from mftcn_bench.specs import EncoderSpec
 
 
 def parse_base(encoder: str, table: Any) -> BaseConfig:

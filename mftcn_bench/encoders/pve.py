@@ -32,14 +32,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mftcn_bench.core.errors import SpecError
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import ClipBatch, FitBudget, ProgressFn
 from mftcn_bench.encoders.common import SpecEncoder, check_image_shape, map_batches, parse_table, to_images
 from mftcn_bench.encoders.frame_cnn import CNNConfig, FrameNet, SingleViewTrainConfig, train_single_view
 from mftcn_bench.encoders.training import EpisodePool
-from mftcn_bench.errors import SpecError
-from mftcn_bench.specs import EncoderSpec
 
 PRIORS = ("variation", "slowness", "inertia", "conservation", "controllability")
 

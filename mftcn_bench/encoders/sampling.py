@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mftcn_bench.errors import DataError
+from mftcn_bench.core.errors import DataError
 
 
 def sample_timesteps(rng: np.random.Generator, length: int, count: int, min_gap: int) -> np.ndarray:

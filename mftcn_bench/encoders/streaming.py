@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from mftcn_bench.data.clips import clip_offsets
+from mftcn_bench.data.clips import ClipRing
 
 
 class FrameHeadNet(Protocol):
@@ -36,19 +36,13 @@ class StreamingEmbedder:
     """Embeds the clip ending at each new frame of `num_envs` environments stepped together."""
 
     def __init__(self, net: FrameHeadNet, frames: int, stride: int, num_envs: int) -> None:
-        if frames < 1 or stride < 1 or num_envs < 1:
-            raise ValueError(f"frames, stride and num_envs must be >= 1, got {frames}, {stride}, {num_envs}")
         self.net, self.frames, self.stride, self.num_envs = net, frames, stride, num_envs
-        self.lookback = (frames - 1) * stride + 1
-        self._offsets = torch.from_numpy(clip_offsets(frames, stride))
-        self._buffer: torch.Tensor | None = None  # [E, lookback, C, h, w], allocated at the first push
-        self._slot = -1  # ring position of the newest frame
-        self._started = np.zeros(num_envs, dtype=bool)
+        self._ring = ClipRing(frames, stride, num_envs)  # per-frame base features [E, lookback, C, h, w]
+        self.lookback = self._ring.lookback
 
     def reset(self) -> None:
         """Forget every environment's history (the next push must start an episode in all of them)."""
-        self._buffer, self._slot = None, -1
-        self._started[:] = False
+        self._ring.reset()
 
     @torch.no_grad()
     def observe(self, frames: np.ndarray, episode_start: np.ndarray, state: np.ndarray | None = None) -> None:
@@ -56,29 +50,14 @@ class StreamingEmbedder:
         into the history without embedding: for frames whose embedding nobody reads (the inner steps of an
         action repeat). `state` is not used."""
         frames = np.asarray(frames)
-        start = np.asarray(episode_start, dtype=bool).reshape(-1)
         if frames.ndim != 4 or frames.shape[0] != self.num_envs or frames.shape[-1] != 3:
             raise ValueError(f"frames must be [{self.num_envs}, H, W, 3], got {frames.shape}")
-        if start.shape != (self.num_envs,):
-            raise ValueError(f"episode_start must have {self.num_envs} entries, got {start.shape}")
-        started = self._started | start
-        if not started.all():
-            raise ValueError(f"environments {np.flatnonzero(~started).tolist()} have not started an episode")
-        self._started = started
         images = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)
-        features = self.net.frame_features(images)  # [E, C, h, w]
-        if self._buffer is None or self._buffer.shape[2:] != features.shape[1:]:
-            self._buffer = features.new_zeros((self.num_envs, self.lookback, *features.shape[1:]))
-        self._slot = (self._slot + 1) % self.lookback
-        self._buffer[:, self._slot] = features
-        restart = torch.from_numpy(np.flatnonzero(start))
-        if len(restart):
-            self._buffer[restart] = features[restart].unsqueeze(1)
+        self._ring.push(self.net.frame_features(images), episode_start)  # one base pass per new frame
 
     @torch.no_grad()
     def push(self, frames: np.ndarray, episode_start: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
         """New frames uint8 [E, H, W, 3] and which environments start an episode with them (bool [E])
         -> float32 [E, D], the embedding of the clip ending at each new frame. `state` is not used."""
         self.observe(frames, episode_start, state)
-        index = (self._slot + self._offsets) % self.lookback  # ring slots of frames t-(n-1)s, ..., t
-        return self.net.head(self._buffer[:, index]).numpy().astype(np.float32, copy=False)
+        return self.net.head(self._ring.clip()).numpy().astype(np.float32, copy=False)

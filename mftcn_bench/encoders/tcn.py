@@ -36,6 +36,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from mftcn_bench.core.errors import DataError, SpecError
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
@@ -49,8 +51,6 @@ from mftcn_bench.encoders.training import (
     run_training,
     views_of,
 )
-from mftcn_bench.errors import DataError, SpecError
-from mftcn_bench.specs import EncoderSpec
 
 LOSSES = ("npairs", "triplet")
 

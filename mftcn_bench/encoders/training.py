@@ -18,6 +18,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from mftcn_bench.core.errors import SpecError, TrainingError
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import Episode, MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
@@ -25,7 +26,6 @@ from mftcn_bench.encoders.common import load_failure, parse_table, save_payload
 from mftcn_bench.encoders.feature_cache import FeatureCache
 from mftcn_bench.encoders.losses import multiview_npairs_loss
 from mftcn_bench.encoders.sampling import plan_batch
-from mftcn_bench.errors import SpecError, TrainingError
 
 
 @dataclass(frozen=True)

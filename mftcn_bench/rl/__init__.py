@@ -1,1 +1,2 @@
-"""Reinforcement learning on frozen embeddings: batched suite environments, observers and PPO."""
+"""Reinforcement learning on frozen embeddings: batched suite environments, observers, PPO, the expert
+policy and the demonstrations recorded from it."""

@@ -17,9 +17,9 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from mftcn_bench import identity
-from mftcn_bench.errors import TrainingError
-from mftcn_bench.fileio import atomic_write_bytes, exclusive_lock
+from mftcn_bench.core import identity
+from mftcn_bench.core.errors import TrainingError
+from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.rl.observers import StateObserver
 from mftcn_bench.rl.ppo import PolicyNetworks, PPOConfig, evaluate_policy, train_ppo
 from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig, physics_state

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mftcn_bench.data.clips import clip_offsets
+from mftcn_bench.data.clips import ClipRing
 from mftcn_bench.encoders.base import ClipBatch, Encoder, HistoryStream, StreamingEncoder, check_embeddings
 
 # What an environment feeds: every new frame through `push` (embedded) or `observe` (history only).
@@ -27,32 +27,23 @@ class ClipWindowObserver:
         info = encoder.info
         self.encoder, self.num_envs = encoder, num_envs
         self.lookback = info.lookback
-        self._offsets = clip_offsets(info.frames, info.stride)
-        self._frames: np.ndarray | None = None  # [E, lookback, H, W, 3]
-        self._state: np.ndarray | None = None  # [E, lookback, S]
-        self._slot = -1
+        self._frames = ClipRing(info.frames, info.stride, num_envs)  # [E, lookback, H, W, 3]
+        self._state = ClipRing(info.frames, info.stride, num_envs)   # [E, lookback, S]
+        self._pixels: bool | None = None
 
     def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None:
-        start = np.asarray(episode_start, dtype=bool)
-        if self._state is None:
-            if not start.all():
-                raise ValueError("the first frame pushed must start an episode in every environment")
-            self._state = np.zeros((self.num_envs, self.lookback, state.shape[1]), dtype=np.float64)
-            if frames is not None:
-                self._frames = np.zeros((self.num_envs, self.lookback, *frames.shape[1:]), dtype=np.uint8)
-        self._slot = (self._slot + 1) % self.lookback
-        self._state[:, self._slot] = state
-        self._state[start] = state[start, None]
-        if frames is not None:
-            self._frames[:, self._slot] = frames
-            self._frames[start] = frames[start, None]
+        if self._pixels is None:
+            self._pixels = frames is not None
+        self._state.push(np.asarray(state, dtype=np.float64), episode_start)
+        if self._pixels:
+            self._frames.push(frames, episode_start)
 
     def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
         self.observe(frames, episode_start, state)
-        index = (self._slot + self._offsets) % self.lookback
-        clip_frames = (self._frames[:, index] if self._frames is not None
-                       else np.zeros((self.num_envs, len(index), 1, 1, 3), dtype=np.uint8))
-        out = self.encoder.embed(ClipBatch(clip_frames, self._state[:, index]))
+        state_clip = self._state.clip()
+        clip_frames = (self._frames.clip() if self._pixels
+                       else np.zeros((self.num_envs, state_clip.shape[1], 1, 1, 3), dtype=np.uint8))
+        out = self.encoder.embed(ClipBatch(clip_frames, state_clip))
         return check_embeddings(self.encoder, out, self.num_envs)
 
 

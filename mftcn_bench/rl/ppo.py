@@ -33,8 +33,8 @@ from torchrl.modules import MLP, ActorValueOperator, IndependentNormal, Probabil
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from mftcn_bench.errors import SpecError, TrainingError
-from mftcn_bench.fileio import atomic_write_bytes
+from mftcn_bench.core.errors import SpecError, TrainingError
+from mftcn_bench.core.fileio import atomic_write_bytes
 from mftcn_bench.rl.suite_env import EnvFactory, SuiteBatchEnv
 
 DISTRIBUTIONS = {"tanh_normal": TanhNormal, "normal": IndependentNormal}

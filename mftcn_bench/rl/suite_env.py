@@ -26,10 +26,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from mftcn_bench.data.clips import clip_offsets
-from mftcn_bench.errors import SpecError
-from mftcn_bench.rendering import MultiViewRenderer, ensure_gl
+from mftcn_bench.core.errors import SpecError
+from mftcn_bench.data.clips import ClipRing
 from mftcn_bench.rl.observers import Observer
+from mftcn_bench.sim.rendering import MultiViewRenderer, ensure_gl
 
 
 @dataclass(frozen=True)
@@ -114,13 +114,11 @@ class SuiteBatchEnv(EnvBase):
         self._renderers = [MultiViewRenderer(env.physics, [config.camera], config.height, config.width,
                                              config.shadowsize, config.offsamples)
                            for env in self._envs] if self._renders else []
-        if pixel_clip is not None:
-            lookback = (pixel_clip.frames - 1) * pixel_clip.stride + 1
-            self._clip_offsets = clip_offsets(pixel_clip.frames, pixel_clip.stride)
-            self._window = np.zeros((num_envs, lookback, 3, config.height, config.width), dtype=np.uint8)
+        if pixel_clip is not None:  # the raw clip of channel-first frames [E, lookback, 3, H, W]
+            self._window = ClipRing(pixel_clip.frames, pixel_clip.stride, num_envs)
+            lookback = self._window.lookback
         self.lookback = lookback
         self.render_steps = min(lookback, config.action_repeat) if self._renders else 0
-        self._slot = -1
         self._t = 0
         action_dim = int(self._envs[0].action_spec().shape[0])
         obs_spec = (Unbounded(shape=(num_envs, embedding_dim), dtype=torch.float32) if pixel_clip is None else
@@ -147,16 +145,8 @@ class SuiteBatchEnv(EnvBase):
         history (an inner step of an action repeat, whose observation nobody reads)."""
         frames = self._frames()
         if self.pixel_clip is not None:
-            chw = frames.transpose(0, 3, 1, 2)
-            self._slot = (self._slot + 1) % self.lookback
-            if start:
-                self._window[:] = chw[:, None]
-            else:
-                self._window[:, self._slot] = chw
-            if not embed:
-                return None
-            index = (self._slot + self._clip_offsets) % self.lookback
-            return torch.from_numpy(self._window[:, index].copy())
+            self._window.push(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)), np.full(self.num_envs, start))
+            return torch.from_numpy(self._window.clip()) if embed else None
         starts = np.full(self.num_envs, start)
         if not embed:
             self.observer.observe(frames, starts, self._state())

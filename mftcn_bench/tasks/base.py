@@ -11,7 +11,7 @@ from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder
 
 if TYPE_CHECKING:
-    from mftcn_bench.home import BenchHome
+    from mftcn_bench.core.home import BenchHome
 
 # Learning curves: name -> columns of equal length, e.g.
 # {"train": {"frames": [...], "wall_s": [...], "return": [...]}}.

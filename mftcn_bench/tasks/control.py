@@ -6,7 +6,7 @@ PPO policy trained on true state). A policy then learns from the embedding of on
 with PPO (`mftcn_bench.rl.ppo`), and is tested on `eval_episodes` episodes of the full 1000 simulator
 steps with its mean action: the result is the mean and standard deviation of those returns, on the
 suite's 1000-step scale whatever the action repeat. The learning curve (training return against frames
-and wall time) is stored with the result and drawn to `curve.png` in the run's folder.
+and wall time) is stored with the result (the runner draws it to `curve.png` in the run's folder).
 
 pixels-cnn is the exception that proves the rule: its CNN has no training signal of its own and is
 trained by the PPO losses together with the policy (the environment emits raw clips for it).
@@ -18,21 +18,21 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import nn
 
+from mftcn_bench.core.errors import SpecError
+from mftcn_bench.core.home import BenchHome
+from mftcn_bench.core.specs import parse_table
 from mftcn_bench.data.cartpole import collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
-from mftcn_bench.data.expert_demos import ExpertDemoCollector
 from mftcn_bench.encoders.base import Encoder, trains_with_policy, uses_pixels
-from mftcn_bench.errors import SpecError
-from mftcn_bench.home import BenchHome
+from mftcn_bench.rl.demos import ExpertDemoCollector
 from mftcn_bench.rl.expert import ensure_expert, expert_key
 from mftcn_bench.rl.observers import make_observer
 from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
 from mftcn_bench.rl.suite_env import PixelClip, SuiteBatchEnv, SuiteConfig
-from mftcn_bench.suite_limits import check_episode_fits
+from mftcn_bench.sim.suite_limits import check_episode_fits
 from mftcn_bench.tasks.base import TaskResult
 
 
@@ -50,10 +50,7 @@ class ClipTrunk(nn.Module):
 
 
 def _table(cls, task: str, name: str, table: Mapping[str, Any]):
-    try:
-        return cls(**table)
-    except TypeError as exc:
-        raise SpecError(f"task {task!r}: bad [{name}] table ({exc})") from None
+    return parse_table(cls, f"task {task!r}", name, table)
 
 
 class ControlTask:
@@ -115,7 +112,6 @@ class ControlTask:
                                   min(self.ppo.num_envs, self.ppo.eval_episodes), self.seed)
         curves = {"train": {"frames": state.curve_frames, "wall_s": state.curve_wall_s,
                             "return": state.curve_return}}
-        plot_curve(curves["train"], workdir / "curve.png", f"{encoder.info.name} on {self.config['name']}")
         # Over the test episodes, as the seeds' std: the sample std (ddof=1).
         metrics = {"return_mean": float(returns.mean()), "return_std": float(returns.std(ddof=1)),
                    "episodes": float(len(returns)), "frames": float(state.frames),
@@ -171,23 +167,3 @@ class ExpertDemoControlTask(ControlTask):
     def collector(self) -> Collector:
         # Before prepare_artifacts it has no expert: it keys the dataset, and refuses to collect.
         return ExpertDemoCollector(self._expert_path, self.env_config, self.expert_ppo)
-
-
-def plot_curve(curve: Mapping[str, list[float]], path: Path, title: str) -> None:
-    """Training return against frames and against wall time, side by side, as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2), sharey=True)
-    axes[0].plot(np.asarray(curve["frames"]) / 1e6, curve["return"])
-    axes[0].set_xlabel("frames (millions)")
-    axes[0].set_ylabel("training return")
-    axes[1].plot(np.asarray(curve["wall_s"]) / 60, curve["return"])
-    axes[1].set_xlabel("wall time (min)")
-    fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)

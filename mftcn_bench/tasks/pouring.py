@@ -19,10 +19,11 @@ from typing import Any
 
 import numpy as np
 
+from mftcn_bench.core.errors import DataError, SpecError
+from mftcn_bench.core.specs import parse_table
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.data.pouring_labels import LABELS, MOTION, STATIC, TILT_CLASSES, class_balance
 from mftcn_bench.encoders.base import Encoder, embed_episode
-from mftcn_bench.errors import DataError, SpecError
 from mftcn_bench.tasks.base import TaskResult
 from mftcn_bench.tasks.pouring_metrics import alignment_error, attribute_errors, mean_or_none
 
@@ -69,10 +70,8 @@ class PouringTask:
 
     def __init__(self, config: Mapping[str, Any], seed: int) -> None:
         self.config, self.seed = config, seed
-        try:
-            self.evaluation = EvaluationConfig(**config["evaluation"])
-        except TypeError as exc:
-            raise SpecError(f"task {config['name']!r}: bad [evaluation] table ({exc})") from None
+        self.evaluation = parse_table(EvaluationConfig, f"task {config['name']!r}", "evaluation",
+                                      config["evaluation"])
         if self.evaluation.split not in SPLITS:
             raise SpecError(f"task {config['name']!r}: evaluation.split must be one of {', '.join(SPLITS)}, "
                             f"got {self.evaluation.split!r}")

@@ -25,14 +25,14 @@ from sklearn.metrics import mean_squared_error, r2_score
 from sklearn.neural_network import MLPRegressor
 from sklearn.preprocessing import StandardScaler
 
-from mftcn_bench.data.cartpole import camera_names, collect_episode
+from mftcn_bench.core.errors import SpecError
+from mftcn_bench.core.specs import parse_table
+from mftcn_bench.data.cartpole import TARGETS, camera_names, collect_episode, state_targets
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder, embed_episode
-from mftcn_bench.errors import SpecError
-from mftcn_bench.suite_limits import check_episode_fits
+from mftcn_bench.sim.suite_limits import check_episode_fits
 from mftcn_bench.tasks.base import TaskResult
 
-TARGETS = ("x_cart", "sin_theta", "cos_theta", "x_dot", "theta_dot")
 POSITION, MOTION = TARGETS[:3], TARGETS[3:]
 
 
@@ -64,12 +64,6 @@ class ProbeConfig:
         for key, ok in rules.items():
             if not ok:
                 raise SpecError(f"task.probe.{key} must be {allowed[key]}, got {getattr(self, key)}")
-
-
-def state_targets(state: np.ndarray) -> np.ndarray:
-    """Simulator state [T, 4] (x, theta, x_dot, theta_dot) -> targets [T, 5] in TARGETS order."""
-    x, theta, x_dot, theta_dot = state.T
-    return np.stack([x, np.sin(theta), np.cos(theta), x_dot, theta_dot], axis=1)
 
 
 def probe_features(embeddings: np.ndarray) -> np.ndarray:
@@ -151,10 +145,7 @@ class CartpoleProbe:
 
     def __init__(self, config: Mapping[str, Any], seed: int) -> None:
         self.config, self.seed = config, seed
-        try:
-            self.probe = ProbeConfig(**config["probe"])
-        except TypeError as exc:
-            raise SpecError(f"task {config['name']!r}: bad [probe] table ({exc})") from None
+        self.probe = parse_table(ProbeConfig, f"task {config['name']!r}", "probe", config["probe"])
         if isinstance(config["dataset"].get("episode_length"), int):  # other bad values: check_dataset_config
             check_episode_fits("cartpole", "swingup", config["dataset"]["episode_length"],
                                f"task {config['name']!r}: [dataset] episode_length")

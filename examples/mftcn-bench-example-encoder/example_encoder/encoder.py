@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 from sklearn.decomposition import PCA
 
+from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.encoders.base import ClipBatch, EncoderInfo, FitBudget, ProgressFn
-from mftcn_bench.specs import EncoderSpec
 
 
 class PixelPCAEncoder:

@@ -1,0 +1,220 @@
+"""The `mftcn-bench` command line: run, list, data, check, sweep, report, leaderboard, results, plot, bench.
+
+The results commands (sweep to plot) live in `cli_results`; `bench` lives in `bench`.
+
+Bad input ends with one line on stderr naming what was wrong and what is allowed, and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import sys
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+from tabulate import tabulate
+
+from mftcn_bench.core.errors import BenchError, SpecError
+from mftcn_bench.core.home import ENV_VAR, BenchHome
+from mftcn_bench.core.specs import parse_override
+
+DEFAULT_ENCODER = "mftcn4"
+DEFAULT_TASK = "cartpole-probe"
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        raise SpecError(f"{self.prog}: {message}")
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4f}"
+    return str(value)
+
+
+def _print_table(rows: list[dict[str, Any]]) -> None:
+    if not rows:
+        return
+    body = [[_fmt(row.get(column)) for column in rows[0]] for row in rows]
+    print(tabulate(body, headers=list(rows[0]), tablefmt="github", disable_numparse=True))
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise SpecError(f"--seed must be a non-negative integer, got {text!r}") from None
+    if value < 0:
+        raise SpecError(f"--seed must be a non-negative integer, got {value}")
+    return value
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--home", help=f"folder for datasets, encoders and results (default ${ENV_VAR} "
+                                       "or ~/.mftcn-bench)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="mftcn-bench", description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    run = commands.add_parser("run", help="run one encoder on one task and print its result")
+    run.add_argument("--encoder", default=DEFAULT_ENCODER, help=f"encoder name (default {DEFAULT_ENCODER})")
+    run.add_argument("--task", default=DEFAULT_TASK, help=f"task name (default {DEFAULT_TASK})")
+    run.add_argument("--preset", help="task preset: smoke, quick or paper (default: the task's own)")
+    run.add_argument("--seed", type=_seed, default=0)
+    run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                     help="override a spec value, e.g. encoder.embedding_dim=8 (repeatable)")
+    run.add_argument("--force", action="store_true", help="recompute even if a stored result exists")
+    _common(run)
+
+    listing = commands.add_parser("list", help="list registered encoders or tasks")
+    listing.add_argument("kind", choices=["encoders", "tasks"])
+
+    data = commands.add_parser("data", help="datasets")
+    data_commands = data.add_subparsers(dest="data_command", required=True, parser_class=_Parser)
+    collect = data_commands.add_parser("collect", help="collect the dataset a task needs")
+    collect.add_argument("task", help="task whose dataset to collect, e.g. cartpole-probe")
+    collect.add_argument("--preset")
+    collect.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    _common(collect)
+    show = data_commands.add_parser("show", help="contact sheet (PNG) and video (mp4) of one episode, with labels")
+    show.add_argument("task", help="task whose dataset to show, e.g. pouring")
+    show.add_argument("--preset")
+    show.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    show.add_argument("--split", default="train", choices=["train", "val", "test"])
+    show.add_argument("--episode", type=int, default=0, help="position of the episode in its split (default 0)")
+    show.add_argument("--columns", type=int, default=8, help="frames per view in the contact sheet")
+    show.add_argument("--out", default=".", help="folder for the PNG and the mp4 (default: here)")
+    _common(show)
+
+    check = commands.add_parser("check", help="check that a registered encoder keeps the encoder contract")
+    check_commands = check.add_subparsers(dest="check_command", required=True, parser_class=_Parser)
+    check_encoder = check_commands.add_parser(
+        "encoder", help="run the contract (metadata, embeddings, embed_episode, streaming, determinism, "
+                        "save/load) against one encoder on a small synthetic dataset; exit 2 on a failure")
+    check_encoder.add_argument("name", help="encoder name (built-in or plugin), e.g. mftcn4")
+    check_encoder.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                               help="override a spec value (repeatable)")
+    check_encoder.add_argument("--keep", metavar="DIR", help="work in DIR and keep it (default: a temporary "
+                                                              "folder)")
+
+    from mftcn_bench.cli.results_commands import add_commands
+
+    add_commands(commands, _common, _Parser)  # sweep, report, leaderboard, results, plot
+
+    from mftcn_bench.perf.bench import add_command as add_bench
+
+    add_bench(commands)  # bench
+    return parser
+
+
+def cmd_run(args: argparse.Namespace) -> None:
+    from mftcn_bench.run.runner import RunRequest, run
+
+    request = RunRequest(args.encoder, args.task, args.preset, args.seed,
+                         tuple(parse_override(o) for o in args.overrides), args.force)
+    outcome = run(request, BenchHome.resolve(args.home), show_progress=not args.no_progress)
+    record = outcome.record
+    how = "reused stored result" if outcome.reused else f"finished in {record.timings['total_s']:.1f} s"
+    print(f"{record.encoder} on {record.task} (preset {record.preset}, seed {record.seed}): {how}; "
+          f"run {record.run_id}")
+    _print_table(outcome.table)
+    for note in outcome.notes:
+        print(note)
+
+
+def cmd_check(args: argparse.Namespace) -> None:
+    from mftcn_bench.core import registry
+    from mftcn_bench.run.conformance import check_encoder
+
+    registry.get("encoders", args.name)  # an unknown name is the usual one-line error
+    failed = 0
+    for line in check_encoder(args.name, tuple(parse_override(o) for o in args.overrides),
+                              Path(args.keep) if args.keep else None):
+        print(line, flush=True)
+        failed += line.status == "FAIL"
+    if failed:
+        raise BenchError(f"encoder {args.name!r} failed {failed} check{'s' if failed > 1 else ''} of the "
+                         f"encoder contract (lines marked FAIL above)")
+    print(f"encoder {args.name!r} keeps the encoder contract")
+
+
+def cmd_list(args: argparse.Namespace) -> None:
+    from mftcn_bench.core import registry
+
+    _print_table(registry.describe(args.kind))
+
+
+def cmd_data(args: argparse.Namespace) -> None:
+    from mftcn_bench.run.runner import RunRequest, prepare, prepare_dataset
+
+    overrides = tuple(parse_override(o) for o in args.overrides)
+    prepared = prepare(RunRequest(DEFAULT_ENCODER, args.task, args.preset, 0, overrides))
+    dataset = prepare_dataset(prepared, BenchHome.resolve(args.home), show_progress=not args.no_progress)
+    if args.data_command == "show":
+        from mftcn_bench.data.show import show_episode
+        from mftcn_bench.tasks.base import LabelledTask
+
+        task = prepared.task
+        names, formats = (task.label_names, task.label_formats) if isinstance(task, LabelledTask) else ((), None)
+        for path in show_episode(dataset, args.split, args.episode, Path(args.out), args.columns, names, formats):
+            print(f"wrote {path}")
+        return
+    frames = sum(dataset.episode_length(i) for s in ("train", "val", "test") for i in dataset.episodes(s))
+    train, test = len(dataset.episodes("train")), len(dataset.episodes("test"))
+    val = f"{len(dataset.episodes('val'))} val + " if dataset.episodes("val") else ""
+    print(f"dataset {dataset.config['name']} ({dataset.dataset_id}): {train} train + {val}{test} test episodes, "
+          f"{frames} frames x {len(dataset.cameras)} views "
+          f"at {dataset.image_shape[1]}x{dataset.image_shape[0]}, in {dataset.root}")
+
+
+# The others name theirs (args.handler).
+COMMANDS = {"run": cmd_run, "list": cmd_list, "data": cmd_data, "check": cmd_check}
+
+
+_show_warning = warnings.showwarning
+
+
+def _warn_one_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """The harness's warnings (plugins, a dirty source tree, a rerun) as one line; others as Python shows them."""
+    from mftcn_bench.core.errors import BenchWarning
+
+    if issubclass(category, BenchWarning):
+        print(f"mftcn-bench: warning: {message}", file=sys.stderr)
+    else:
+        _show_warning(message, category, filename, lineno, file, line)
+
+
+def _unwritable(exc: OSError) -> bool:
+    """A write refused by the file system (permissions, read-only, full disk): the user's to fix."""
+    return isinstance(exc, PermissionError) or exc.errno in (errno.EROFS, errno.ENOSPC, errno.EDQUOT)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    warnings.showwarning = _warn_one_line
+    try:
+        args = build_parser().parse_args(argv)
+        (COMMANDS.get(args.command) or args.handler)(args)
+    except BenchError as exc:
+        print(f"mftcn-bench: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except OSError as exc:
+        if not _unwritable(exc):
+            raise
+        print(f"mftcn-bench: error: cannot write {exc.filename or 'a file'} ({exc.strerror}); the results folder "
+              f"must be writable and have free space: fix it or choose another with --home or ${ENV_VAR}",
+              file=sys.stderr)
+        return BenchError.exit_code
+    except KeyboardInterrupt:
+        print("mftcn-bench: interrupted; finished work is kept and a rerun continues from it",
+              file=sys.stderr)
+        return 130
+    return 0

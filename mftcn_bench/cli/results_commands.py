@@ -1,0 +1,178 @@
+"""The results commands of `mftcn-bench`: sweep, report, leaderboard, results export/import/doc, plot.
+
+`add_commands` adds their parsers to the main command line; each parser names its handler.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from pathlib import Path
+
+from tabulate import tabulate
+
+from mftcn_bench.core.errors import BenchError, SpecError
+from mftcn_bench.core.fileio import atomic_write_bytes
+from mftcn_bench.core.home import BenchHome
+from mftcn_bench.core.specs import parse_override
+
+REPORT_CHOICES = ["probe", "swingup", "cheetah", "pouring", "pouring-attributes", "all"]
+PLOT_CHOICES = ["curves", "probe-lookback", "pouring-lookback"]
+
+
+def _store(args: argparse.Namespace):
+    from mftcn_bench.results.store import ResultStore
+
+    return ResultStore(BenchHome.resolve(args.home).database)
+
+
+def add_commands(commands: argparse._SubParsersAction, common: Callable[[argparse.ArgumentParser], None],
+                 parser_class: type[argparse.ArgumentParser]) -> None:
+    """Add sweep, report, leaderboard, results and plot to `commands`."""
+    sweep = commands.add_parser("sweep", help="run a grid of encoders x tasks x seeds (local pool or Ray)")
+    sweep.add_argument("--encoders", required=True, help="comma-separated encoder names, e.g. mftcn1,mftcn5,pve")
+    sweep.add_argument("--tasks", required=True, help="comma-separated task names, e.g. cartpole-probe")
+    sweep.add_argument("--seeds", default="0", help="seeds: 0-4, 0,2,5 or 0-2,7 (default 0)")
+    sweep.add_argument("--preset", help="task preset for every task (default: each task's own)")
+    sweep.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                       help="override a spec value for every run (repeatable)")
+    sweep.add_argument("--executor", choices=["local", "ray"], default="local")
+    sweep.add_argument("--address", help="Ray cluster address (ray://host:10001 or host:6379); default: a "
+                                         "local Ray instance")
+    sweep.add_argument("--workers", type=int, default=2, help="jobs at once (local processes, or CPUs of a "
+                                                              "local Ray instance; default 2)")
+    sweep.add_argument("--threads", type=int, default=1, help="torch/BLAS threads per job (default 1)")
+    common(sweep)
+    sweep.set_defaults(handler=cmd_sweep)
+
+    report = commands.add_parser("report", help="print the paper's tables from stored results, ours beside "
+                                                "the paper's")
+    report.add_argument("table", choices=REPORT_CHOICES)
+    report.add_argument("--preset", help="only results of this preset")
+    report.add_argument("--format", choices=["markdown", "latex"], default="markdown")
+    common(report)
+    report.set_defaults(handler=cmd_report)
+
+    board = commands.add_parser("leaderboard", help="write markdown leaderboards from stored results")
+    board.add_argument("--out", default="leaderboards", help="folder to write (default ./leaderboards)")
+    common(board)
+    board.set_defaults(handler=cmd_leaderboard)
+
+    results = commands.add_parser("results", help="export or import results as JSON files (one per run)")
+    results_commands = results.add_subparsers(dest="results_command", required=True, parser_class=parser_class)
+    export = results_commands.add_parser("export", help="write <run id>.json for every stored run")
+    export.add_argument("folder")
+    export.add_argument("--task")
+    export.add_argument("--preset")
+    common(export)
+    imported = results_commands.add_parser("import", help="merge a folder of run JSON files into the store")
+    imported.add_argument("folder")
+    common(imported)
+    doc = results_commands.add_parser("doc", help="fill a document's generated tables from a folder of run "
+                                                  "records (docs/RESULTS.md from results/)")
+    doc.add_argument("document")
+    doc.add_argument("--records", default="results", help="folder of run JSON files (default ./results)")
+    doc.add_argument("--check", action="store_true", help="exit 2 if the document is not up to date")
+    results.set_defaults(handler=cmd_results)
+
+    plot = commands.add_parser("plot", help="PNG plots from stored results")
+    plot.add_argument("kind", choices=PLOT_CHOICES)
+    plot.add_argument("--task", help="learning curves of this task only")
+    plot.add_argument("--out", default="plots", help="folder to write (default ./plots)")
+    common(plot)
+    plot.set_defaults(handler=cmd_plot)
+
+
+def cmd_sweep(args: argparse.Namespace) -> None:
+    from mftcn_bench.orchestration.sweep import (
+        SweepFailed,
+        SweepRequest,
+        parse_names,
+        parse_seeds,
+        run_sweep,
+        summary_rows,
+    )
+    from mftcn_bench.results.leaderboard import ranking
+
+    request = SweepRequest(parse_names(args.encoders, "encoders"), parse_names(args.tasks, "tasks"),
+                           parse_seeds(args.seeds), args.preset, tuple(parse_override(o) for o in args.overrides),
+                           args.executor, args.address, args.workers, args.threads)
+    jobs = run_sweep(request, BenchHome.resolve(args.home), echo=lambda line: print(line, flush=True))
+    metrics = {task: (r.metric if (r := ranking(task)) else None) for task in request.tasks}
+    rows = summary_rows(jobs, metrics.get)
+    print(tabulate([list(r.values()) for r in rows], headers=list(rows[0]), tablefmt="github",
+                   disable_numparse=True))
+    counts = {s: sum(j.status == s for j in jobs) for s in ("done", "reused", "failed")}
+    print(f"{len(jobs)} jobs: {counts['done']} done, {counts['reused']} reused, {counts['failed']} failed")
+    if counts["failed"]:
+        raise SweepFailed(f"{counts['failed']} of {len(jobs)} sweep jobs failed (see the table above); a rerun "
+                          f"redoes only those")
+
+
+def cmd_report(args: argparse.Namespace) -> None:
+    from mftcn_bench.results.paper_tables import TABLES
+    from mftcn_bench.results.report import report
+
+    names = list(TABLES) if args.table == "all" else [args.table]
+    print(report(_store(args), names, args.preset, args.format))
+
+
+def cmd_leaderboard(args: argparse.Namespace) -> None:
+    from mftcn_bench.results.leaderboard import write_boards
+
+    written = write_boards(_store(args).query(), Path(args.out))
+    print(f"wrote {len(written)} files to {args.out}: {', '.join(p.name for p in written)}")
+
+
+def cmd_results(args: argparse.Namespace) -> None:
+    from mftcn_bench.results.records_io import export_results, import_results
+
+    if args.results_command == "doc":
+        return _fill_document(Path(args.document), Path(args.records), args.check)
+    store, folder = _store(args), Path(args.folder)
+    if args.results_command == "export":
+        count = export_results(store, folder, args.task, args.preset)
+        print(f"exported {count} runs to {folder}")
+    else:
+        summary = import_results(store, folder)
+        print(f"imported from {folder}: {summary.added} added, {summary.updated} updated, "
+              f"{summary.unchanged} already stored")
+
+
+def _fill_document(document: Path, records: Path, check: bool) -> None:
+    import tempfile
+
+    from mftcn_bench.results.document import fill_generated
+    from mftcn_bench.results.records_io import import_results
+    from mftcn_bench.results.store import ResultStore
+
+    if not document.is_file():
+        raise SpecError(f"no document {document}")
+    with tempfile.TemporaryDirectory() as tmp:
+        store = ResultStore(Path(tmp) / "results.sqlite")
+        import_results(store, records)
+        text = document.read_text(encoding="utf-8")
+        filled = fill_generated(text, store)
+    if check:
+        if filled != text:
+            raise BenchError(f"{document} is not up to date with {records}; run `mftcn-bench results doc {document}`")
+        print(f"{document} is up to date with {records}")
+        return
+    atomic_write_bytes(document, filled.encode())
+    print(f"wrote {document} from the records in {records}")
+
+
+def cmd_plot(args: argparse.Namespace) -> None:
+    from mftcn_bench.results import plots
+
+    records, out = _store(args).query(), Path(args.out)
+    if args.kind == "curves":
+        written = plots.plot_curves(records, out, args.task)
+    elif args.kind == "probe-lookback":
+        written = plots.plot_probe_lookback(records, out)
+    else:
+        written = plots.plot_pouring_lookback(records, out)
+    if not written:
+        print(f"nothing to plot: no stored runs of the current specs for `plot {args.kind}`")
+    for path in written:
+        print(f"wrote {path}")

@@ -1,0 +1,236 @@
+"""Sweeps: a grid of encoders x tasks x seeds, run on a local process pool or on Ray.
+
+Order of work: every name, preset and override is checked before anything starts. Then the shared
+prerequisites are built once each, before the fan-out: the datasets (one job per distinct dataset), then
+the trained encoders (one job per distinct checkpoint). Runs already in the store (same run id) are
+reused, not redone, so an interrupted sweep continues where it stopped. Each remaining (encoder, task,
+seed) is one job; its worker returns the RunRecord and the driver writes it into its own store, so
+results reach the driver's store even from cluster workers that do not share its disk.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from datetime import UTC, datetime
+from typing import Any
+
+from mftcn_bench.core.errors import BenchError, SpecError
+from mftcn_bench.core.fileio import atomic_write_bytes
+from mftcn_bench.core.home import BenchHome
+from mftcn_bench.data.dataset import MultiViewDataset, dataset_id
+from mftcn_bench.orchestration.executors import Executor, check_executor_args, make_executor
+from mftcn_bench.orchestration.jobs import JobKind, JobResult, JobSpec
+from mftcn_bench.results.store import ResultStore, RunRecord
+from mftcn_bench.run.runner import PreparedRun, RunRequest, construct_encoder, encoder_key_of, prepare, run_id_of
+
+
+class SweepFailed(BenchError):
+    """Some jobs of a sweep failed (the others finished and are stored)."""
+
+    exit_code = 1
+
+
+@dataclass(frozen=True)
+class SweepRequest:
+    encoders: tuple[str, ...]
+    tasks: tuple[str, ...]
+    seeds: tuple[int, ...]
+    preset: str | None = None
+    overrides: tuple[tuple[str, Any], ...] = ()
+    executor: str = "local"
+    address: str | None = None
+    workers: int = 2
+    threads: int = 1
+
+
+@dataclass
+class SweepJob:
+    """One (encoder, task, seed) of the grid and what became of it: planned, done, reused or failed."""
+
+    encoder: str
+    task: str
+    seed: int
+    preset: str
+    status: str = "planned"
+    run_id: str | None = None
+    error: str | None = None
+    seconds: float = 0.0
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+def parse_names(text: str, what: str) -> tuple[str, ...]:
+    names = tuple(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
+    if not names:
+        raise SpecError(f"--{what} needs at least one name (comma-separated)")
+    return names
+
+
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """`0-4` -> 0..4; `0,2,7`; `0-2,5`."""
+    seeds: list[int] = []
+    for part in (p.strip() for p in text.split(",")):
+        low, dash, high = part.partition("-")
+        try:
+            first = int(low)
+            last = int(high) if dash else first
+        except ValueError:
+            raise SpecError(f"--seeds {text!r}: expected non-negative integers and ranges like 0-4 or 0,2,5") \
+                from None
+        if first < 0 or last < first:
+            raise SpecError(f"--seeds {text!r}: ranges go from a non-negative low to a high, like 0-4")
+        seeds.extend(range(first, last + 1))
+    return tuple(dict.fromkeys(seeds))
+
+
+def _local_fingerprint(prepared: PreparedRun, home: BenchHome) -> str | None:
+    config = prepared.task.dataset_config
+    root = home.datasets / f"{config['name']}-{dataset_id(config, prepared.task.collector)}"
+    return MultiViewDataset(root).fingerprint if (root / "manifest.json").exists() else None
+
+
+def _needs_fit(prepared: PreparedRun) -> bool:
+    """Whether the encoder trains: asked of an untrained instance (construction does no training)."""
+    config = prepared.task.dataset_config
+    try:
+        return construct_encoder(prepared.encoder_entry, prepared.config["encoder"], prepared.request.seed,
+                                 (int(config["height"]), int(config["width"]))).needs_fit
+    except (BenchError, KeyError):
+        return True  # the fit job reports the failure
+
+
+class Sweep:
+    """A validated sweep: `plan()` builds prerequisites and finds reusable runs, `run()` does the rest."""
+
+    def __init__(self, request: SweepRequest, home: BenchHome, echo: Callable[[str], None] = print) -> None:
+        check_executor_args(request.executor, request.workers, request.address)
+        if not request.seeds:
+            raise SpecError("--seeds needs at least one seed")
+        if request.threads < 1:
+            raise SpecError(f"--threads must be >= 1, got {request.threads}")
+        self.request, self.home, self.echo = request, home, echo
+        self.prepared: list[PreparedRun] = [
+            prepare(RunRequest(e, t, request.preset, s, request.overrides))
+            for e in request.encoders for t in request.tasks for s in request.seeds
+        ]
+        self.jobs = [SweepJob(p.request.encoder, p.request.task, p.request.seed, p.preset) for p in self.prepared]
+        self.store = ResultStore(home.database)
+        # Cluster workers use their own home; local ones (pool or local Ray) share the driver's.
+        self.worker_home = None if request.address else str(home.root)
+
+    def _spec(self, kind: JobKind, prepared: PreparedRun) -> JobSpec:
+        r = prepared.request
+        return JobSpec(kind, r.encoder, r.task, r.preset, r.seed, tuple(r.overrides), self.worker_home,
+                       self.request.threads)
+
+    def _phase(self, executor: Executor, kind: JobKind, groups: dict[str, list[int]]) -> dict[str, JobResult]:
+        """One job per group (its first member's), results by group key."""
+        keys = list(groups)
+        specs = [self._spec(kind, self.prepared[groups[k][0]]) for k in keys]
+        results: dict[str, JobResult] = {}
+        for n, (i, result) in enumerate(executor.map(specs), 1):
+            results[keys[i]] = result
+            job = self.jobs[groups[keys[i]][0]]
+            state = "ok" if result.ok else f"FAILED: {result.error}"
+            self.echo(f"[{kind} {n}/{len(specs)}] {job.task}" + (f" {job.encoder} seed {job.seed}"
+                      if kind == "encoder" else "") + f": {state} ({result.seconds:.1f} s)")
+        return results
+
+    def _fail(self, index: int, error: str) -> None:
+        self.jobs[index].status, self.jobs[index].error = "failed", error
+
+    def _store(self, record: RunRecord) -> None:
+        """Write a worker's record into the driver's store and runs folder (if not there already)."""
+        if self.store.get(record.run_id) is None:
+            if not record.created_at:
+                record = replace(record, created_at=datetime.now(UTC).isoformat(timespec="seconds"))
+            self.store.put(record)
+        run_dir = self.home.runs / record.run_id
+        if not (run_dir / "result.json").exists():
+            run_dir.mkdir(parents=True, exist_ok=True)
+            stored = self.store.get(record.run_id) or record
+            atomic_write_bytes(run_dir / "result.json", json.dumps(asdict(stored), indent=1, sort_keys=True).encode())
+
+    def run(self, executor: Executor | None = None) -> list[SweepJob]:
+        own = executor is None
+        executor = executor or make_executor(self.request.executor, self.request.workers, self.request.address)
+        try:
+            self._run(executor)
+        finally:
+            if own:
+                executor.close()
+        return self.jobs
+
+    def _run(self, executor: Executor) -> None:
+        # 1. datasets: one job per distinct dataset config (reusing what the driver's home already has)
+        fingerprints: dict[int, str] = {}
+        by_dataset: dict[str, list[int]] = {}
+        for i, p in enumerate(self.prepared):
+            local = _local_fingerprint(p, self.home) if self.worker_home else None
+            if local:
+                fingerprints[i] = local
+            else:
+                by_dataset.setdefault(dataset_id(p.task.dataset_config, p.task.collector), []).append(i)
+        for key, result in self._phase(executor, "dataset", by_dataset).items():
+            for i in by_dataset[key]:
+                if result.ok and result.fingerprint:
+                    fingerprints[i] = result.fingerprint
+                else:
+                    self._fail(i, f"dataset: {result.error}")
+        # 2. finished runs are reused
+        todo = []
+        for i, p in enumerate(self.prepared):
+            if i not in fingerprints:
+                continue
+            run_id = run_id_of(p, fingerprints[i])
+            stored = self.store.get(run_id)
+            self.jobs[i].run_id = run_id
+            if stored is not None:
+                self.jobs[i].status, self.jobs[i].metrics = "reused", stored.metrics
+            else:
+                todo.append(i)
+        # 3. trained encoders: one job per distinct checkpoint (encoders that train nothing need none)
+        by_encoder: dict[str, list[int]] = {}
+        for i in todo:
+            if not _needs_fit(self.prepared[i]):
+                continue
+            by_encoder.setdefault(encoder_key_of(self.prepared[i], fingerprints[i]), []).append(i)
+        for key, result in self._phase(executor, "encoder", by_encoder).items():
+            if not result.ok:
+                for i in by_encoder[key]:
+                    self._fail(i, f"encoder: {result.error}")
+        # 4. the runs
+        runs = [i for i in todo if self.jobs[i].status == "planned"]
+        specs = [self._spec("run", self.prepared[i]) for i in runs]
+        for n, (k, result) in enumerate(executor.map(specs), 1):
+            job = self.jobs[runs[k]]
+            job.seconds = result.seconds
+            if result.ok and result.record is not None:
+                self._store(result.record)
+                job.status = "reused" if result.reused else "done"
+                job.run_id, job.metrics = result.record.run_id, result.record.metrics
+            else:
+                self._fail(runs[k], result.error or "no result")
+            self.echo(f"[run {n}/{len(specs)}] {job.encoder} on {job.task} seed {job.seed}: {job.status}"
+                      + (f" ({job.error})" if job.error else f" ({job.seconds:.1f} s)"))
+
+
+def summary_rows(jobs: Sequence[SweepJob], metric_of: Callable[[str], str | None] = lambda task: None,
+                 ) -> list[dict[str, Any]]:
+    """One row per job for the closing table; `metric_of(task)` names a metric to show."""
+    rows = []
+    for job in jobs:
+        metric = metric_of(job.task)
+        value = job.metrics.get(metric) if metric else None
+        rows.append({"encoder": job.encoder, "task": job.task, "preset": job.preset, "seed": job.seed,
+                     "status": job.status, "run id": job.run_id or "-",
+                     "metric": f"{metric} = {value:.4f}" if isinstance(value, int | float) else "-",
+                     "error": job.error or ""})
+    return rows
+
+
+def run_sweep(request: SweepRequest, home: BenchHome, echo: Callable[[str], None] = print,
+              executor: Executor | None = None) -> list[SweepJob]:
+    """Validate, then run the sweep; returns every job with its status (failures do not raise)."""
+    return Sweep(request, home, echo).run(executor)

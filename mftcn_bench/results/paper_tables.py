@@ -1,0 +1,175 @@
+"""The paper's five result tables as data: rows (label, our encoder and task, a config filter), metric
+columns, and the paper's published figures.
+
+This module is the one place where the paper's numbers are written down (from
+"Learning Actionable Representations from Visual Observations", tables `table_regression`,
+`table_cartpole`, the cheetah table, `table:mftcn_pouring` and `table:mftcn_pouring_details`).
+A paper figure of None is a "-" in the paper; a row whose `paper` is None is not in the paper.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from mftcn_bench.data.cartpole import TARGETS
+
+
+@dataclass(frozen=True)
+class MetricColumn:
+    """A stored metric shown as one column."""
+
+    metric: str
+    label: str
+
+
+@dataclass(frozen=True)
+class PaperRow:
+    """One row of a paper table: its label cells, the encoder and task whose stored runs fill it, the
+    config values those runs must have (dotted keys), and the paper's figures, one per metric column."""
+
+    labels: tuple[str, ...]
+    encoder: str
+    task: str
+    where: Mapping[str, Any] = field(default_factory=dict)
+    paper: tuple[float | None, ...] | None = None
+
+
+@dataclass(frozen=True)
+class PaperTable:
+    name: str
+    title: str
+    label_headers: tuple[str, ...]
+    columns: tuple[MetricColumn, ...]
+    rows: tuple[PaperRow, ...]
+    note: str = ""
+    decimals: int = 4
+
+    @property
+    def tasks(self) -> tuple[str, ...]:
+        return tuple(dict.fromkeys(row.task for row in self.rows))
+
+
+# --- Table "Results on regressing Cartpole Positions and Velocities from mfTCN Embeddings" -------------
+_PROBE_PAPER: dict[tuple[int, int], tuple[float, ...]] = {  # (embedding, lookback) -> columns in order
+    (8, 1): (0.1312, 0.0201, 0.2979, 0.0238, 0.0085, 0.0279, 0.4964, 0.0993),
+    (8, 2): (0.0435, 0.0017, 0.1062, 0.0011, 0.0025, 0.0016, 0.1587, 0.0537),
+    (8, 4): (0.0207, 0.0014, 0.0497, 0.0008, 0.0020, 0.0014, 0.0788, 0.0207),
+    (32, 1): (0.0911, 0.0052, 0.2201, 0.0045, 0.0037, 0.0072, 0.3716, 0.0686),
+    (32, 2): (0.0401, 0.0019, 0.0974, 0.0014, 0.0027, 0.0015, 0.1456, 0.0492),
+    (32, 4): (0.0198, 0.0013, 0.0476, 0.0008, 0.0020, 0.0013, 0.0748, 0.0203),
+    (128, 1): (0.0636, 0.0040, 0.1528, 0.0030, 0.0035, 0.0056, 0.2396, 0.0661),
+    (128, 2): (0.0419, 0.0018, 0.1020, 0.0011, 0.0027, 0.0015, 0.1489, 0.0552),
+    (128, 4): (0.0211, 0.0014, 0.0505, 0.0007, 0.0022, 0.0014, 0.0783, 0.0227),
+}
+_TARGET_LABELS = {"x_cart": "x_cart", "sin_theta": "sin theta", "cos_theta": "cos theta", "x_dot": "x_dot",
+                  "theta_dot": "theta_dot"}
+PROBE = PaperTable(
+    name="probe",
+    title="Cartpole state regression (MSE), cartpole-probe",
+    label_headers=("Embedding", "Lookback"),
+    columns=(MetricColumn("average", "Average"), MetricColumn("position", "Position"),
+             MetricColumn("motion", "Motion"))
+    + tuple(MetricColumn(f"mse_{k}", _TARGET_LABELS[k]) for k in TARGETS)
+    + tuple(MetricColumn(f"r2_{k}", f"R^2 {_TARGET_LABELS[k]}") for k in TARGETS),
+    rows=tuple(PaperRow((str(dim), str(lookback)), f"mftcn{lookback}", "cartpole-probe",
+                        {"encoder.embedding_dim": dim}, (*paper, *(None,) * len(TARGETS)))
+               for (dim, lookback), paper in _PROBE_PAPER.items()),
+    note="The paper's figures are at paper scale (160,000 train / 20,000 test frames); it gives no R^2.",
+)
+
+# --- Table "Results on CartPole Swingup task": cumulative reward over 100 test episodes ------------------
+_RETURN_COLUMNS = (MetricColumn("return_mean", "Mean"), MetricColumn("return_std", "Std."))
+SWINGUP = PaperTable(
+    name="swingup",
+    title="Cartpole swing-up, PPO on the frozen embedding: episode return",
+    label_headers=("Input to PPO", "Lookback", "Pixels", "Resolution"),
+    columns=_RETURN_COLUMNS,
+    rows=(
+        PaperRow(("Random State", "1", "", ""), "random-state", "swingup", paper=(121.45, 11.98)),
+        PaperRow(("True State", "1", "", ""), "true-state", "swingup", paper=(861.41, 3.46)),
+        PaperRow(("Pixels (CNN)", "1", "yes", "96x48"), "pixels-cnn", "swingup", paper=(283.82, 42.88)),
+        PaperRow(("PVE", "1", "yes", "96x48"), "pve", "swingup", paper=(457.27, 51.16)),
+        PaperRow(("mfTCN", "1", "yes", "96x48"), "mftcn1", "swingup", paper=(550.98, 53.40)),
+        PaperRow(("mfTCN", "5", "yes", "96x48"), "mftcn5", "swingup", paper=(701.30, 80.14)),
+        PaperRow(("mfTCN", "1", "yes", "160x160"), "mftcn1", "swingup-160", paper=(759.33, 77.77)),
+        PaperRow(("mfTCN", "5", "yes", "160x160"), "mftcn5", "swingup-160", paper=(787.47, 67.80)),
+        PaperRow(("mfTCN (moving)", "1", "yes", "160x160"), "mftcn1", "swingup-moving", paper=(691.77, 85.28)),
+        PaperRow(("mfTCN (moving)", "5", "yes", "160x160"), "mftcn5", "swingup-moving", paper=(811.10, 41.80)),
+    ),
+    note="Mean: mean over seeds of each run's mean test-episode return; Std.: mean over seeds of each run's "
+         "std over test episodes (the paper's Std. is over its 100 test episodes).",
+    decimals=2,
+)
+
+# --- Table "Results on Cheetah Walk task" (the suite's cheetah-run) --------------------------------------
+CHEETAH = PaperTable(
+    name="cheetah",
+    title="Cheetah (encoder trained on expert demonstrations only), PPO on the frozen embedding: episode return",
+    label_headers=("Input to PPO",),
+    columns=_RETURN_COLUMNS,
+    rows=(
+        PaperRow(("Random State",), "random-state", "cheetah", paper=(28.31, 3.62)),
+        PaperRow(("True State",), "true-state", "cheetah", paper=(390.16, 44.85)),
+        PaperRow(("Pixels (CNN)",), "pixels-cnn", "cheetah", paper=(146.14, 29.51)),
+        PaperRow(("mfTCN",), "mftcn5", "cheetah", paper=(360.50, 76.52)),
+    ),
+    note="The paper does not give the lookback of its cheetah mfTCN; its row is set beside our mftcn5.",
+    decimals=2,
+)
+
+# --- Table "Attributes classification and alignment metrics on the Pouring Dataset" ----------------------
+POURING = PaperTable(
+    name="pouring",
+    title="Pouring: 1-NN attribute classification and alignment errors (%)",
+    label_headers=("Model", "Lookback"),
+    columns=(MetricColumn("static_error", "Static"), MetricColumn("motion_error", "Motion"),
+             MetricColumn("alignment_error", "Alignment")),
+    rows=(
+        PaperRow(("Random", "1"), "random-state", "pouring", paper=(54.2, None, None)),
+        PaperRow(("Inception", "1"), "inception", "pouring", paper=(51.9, None, None)),
+        PaperRow(("Shuffle & Learn", "1"), "shuffle-and-learn", "pouring", paper=(27.0, None, None)),
+        PaperRow(("TCN", "1"), "tcn", "pouring", paper=(22.2, None, None)),
+        PaperRow(("mfTCN^1", "1"), "mftcn1", "pouring", paper=(18.9, 30.2, 16.2)),
+        PaperRow(("mfTCN^7", "7"), "mftcn7", "pouring", paper=(17.3, 24.8, 14.3)),
+        PaperRow(("mfTCN^13", "13"), "mftcn13", "pouring", paper=(16.8, 18.3, 11.3)),
+        PaperRow(("mfTCN^29", "29"), "mftcn29", "pouring", paper=(19.4, 20.9, 8.9)),
+    ),
+    note="Ours: the simulated pouring dataset. The paper's figures (in brackets) are on the REAL Multiview "
+         "Pouring dataset, shown for reference, not as a like-for-like comparison.",
+    decimals=1,
+)
+
+# --- Table "Attribute-wise classification results on the Pouring Dataset" --------------------------------
+_ATTRIBUTE_COLUMNS = (
+    ("contact", "contact"), ("tilt_angle", "angle"), ("within_distance", "distance"),
+    ("has_liquid", "has liquid"), ("liquid_flowing", "liquid flowing"), ("coming_down", "container down"),
+    ("going_up", "container up"), ("reaching", "hand reaching"), ("receding", "hand receding"),
+)
+_NO_MOTION = (None, None, None, None)
+POURING_ATTRIBUTES = PaperTable(
+    name="pouring-attributes",
+    title="Pouring: attribute-wise 1-NN classification error (%); static, then motion attributes",
+    label_headers=("Model", "Lookback"),
+    columns=tuple(MetricColumn(f"error_{attr}", label) for attr, label in _ATTRIBUTE_COLUMNS),
+    rows=(
+        PaperRow(("Random", "1"), "random-state", "pouring", paper=(49.9, 74.5, 48.9, 49.2, 48.4) + _NO_MOTION),
+        PaperRow(("Inception", "1"), "inception", "pouring", paper=(47.4, 71.8, 45.2, 48.8, 49.2) + _NO_MOTION),
+        PaperRow(("Shuffle & Learn", "1"), "shuffle-and-learn", "pouring",
+                 paper=(17.2, 46.3, 17.8, 25.7, 28.0) + _NO_MOTION),
+        PaperRow(("TCN", "1"), "tcn", "pouring", paper=(8.0, 35.9, 9.0, 24.7, 35.5) + _NO_MOTION),
+        PaperRow(("mfTCN^1", "1"), "mftcn1", "pouring",
+                 paper=(7.2, 39.5, 9.5, 27.4, 14.6, 34.5, 30.6, 30.5, 29.6)),
+        PaperRow(("mfTCN^7", "7"), "mftcn7", "pouring",
+                 paper=(8.2, 39.7, 10.6, 22.1, 10.3, 25.7, 25.6, 25.8, 25.0)),
+        PaperRow(("mfTCN^13", "13"), "mftcn13", "pouring",
+                 paper=(8.2, 38.7, 9.1, 18.5, 10.2, 22.6, 19.7, 17.2, 17.6)),
+        PaperRow(("mfTCN^29", "29"), "mftcn29", "pouring",
+                 paper=(8.6, 37.5, 11.2, 16.1, 10.3, 25.4, 20.3, 16.2, 20.7)),
+    ),
+    note=POURING.note,
+    decimals=1,
+)
+
+TABLES: dict[str, PaperTable] = {t.name: t for t in (PROBE, SWINGUP, CHEETAH, POURING, POURING_ATTRIBUTES)}

@@ -1,0 +1,175 @@
+"""Plots (PNG, matplotlib's Agg backend) from stored results: learning curves per task, probe MSE vs
+lookback, pouring error vs lookback.
+
+Seeds are aggregated as in the tables: mean, and a band or error bar of one sample std (ddof=1). Learning
+curves are interpolated onto a common frames grid that every seed covers (up to the shortest run).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402 - the backend is chosen first
+import numpy as np  # noqa: E402
+
+from mftcn_bench.results.paper_tables import PROBE  # noqa: E402
+from mftcn_bench.results.selection import Accept, counted_runs, matches_current_specs, variant_key, variant_label  # noqa: E402
+from mftcn_bench.results.stats import seed_stats  # noqa: E402
+from mftcn_bench.results.store import RunRecord  # noqa: E402
+
+CURVE = "train"
+GRID_POINTS = 200
+PROBE_METRICS = ("average", "position", "motion")
+POURING_METRICS = ("static_error", "motion_error", "alignment_error")
+
+
+def lookback(record: RunRecord) -> int | None:
+    """Frames spanned by the run's clips, from its encoder config."""
+    encoder = record.config.get("encoder", {})
+    try:
+        return (int(encoder["frames"]) - 1) * int(encoder["stride"]) + 1
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def mean_curve(curves: Sequence[dict[str, list[float]]], x: str = "frames",
+               y: str = "return") -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(grid, mean, std or None for one seed) of several runs' curves on a common grid from the largest
+    first x to the smallest last x, so that no seed is extrapolated."""
+    usable = [c for c in curves if len(c.get(x, [])) >= 1 and len(c.get(x, [])) == len(c.get(y, []))]
+    if not usable:
+        raise ValueError("no usable curve")
+    start = max(float(c[x][0]) for c in usable)
+    stop = min(float(c[x][-1]) for c in usable)
+    grid = np.linspace(start, stop, GRID_POINTS) if stop > start else np.array([stop])
+    values = np.stack([np.interp(grid, np.asarray(c[x], float), np.asarray(c[y], float)) for c in usable])
+    std = values.std(axis=0, ddof=1) if len(usable) >= 2 else None
+    return grid, values.mean(axis=0), std
+
+
+def _save(fig, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _group(runs: Iterable[RunRecord]) -> dict[tuple, list[RunRecord]]:
+    groups: dict[tuple, list[RunRecord]] = defaultdict(list)
+    for record in runs:
+        groups[(record.task, record.preset)].append(record)
+    return dict(sorted(groups.items()))
+
+
+def plot_curves(records: Iterable[RunRecord], out: Path, task: str | None = None,
+                accept: Accept = matches_current_specs) -> list[Path]:
+    """`curves-<task>-<preset>.png`: training return vs env frames, one line per encoder, mean over seeds
+    with a ±1 std band."""
+    runs = [r for r in counted_runs(records, accept)
+            if CURVE in r.curves and (task is None or r.task == task)]
+    written = []
+    for (task_name, preset), group in _group(runs).items():
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        by_variant: dict[tuple, list[RunRecord]] = defaultdict(list)
+        for record in group:
+            by_variant[variant_key(record)].append(record)
+        for variant in sorted(by_variant, key=str):
+            members = by_variant[variant]
+            try:
+                grid, mean, std = mean_curve([r.curves[CURVE] for r in members])
+            except ValueError:
+                continue
+            line, = ax.plot(grid, mean, label=f"{variant_label(members[0])} (n={len(members)})")
+            if std is not None:
+                ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+        ax.set(xlabel="environment frames", ylabel="episode return (training)",
+               title=f"{task_name}, preset {preset}: mean over seeds, band ±1 sample std")
+        ax.legend(fontsize="small")
+        written.append(_save(fig, out / f"curves-{task_name}-{preset}.png"))
+    return written
+
+
+def plot_run_curve(curve: dict[str, list[float]], path: Path, title: str) -> Path:
+    """One run's training return against frames and against wall time, side by side (`curve.png` in the
+    run's folder)."""
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2), sharey=True)
+    axes[0].plot(np.asarray(curve["frames"]) / 1e6, curve["return"])
+    axes[0].set(xlabel="frames (millions)", ylabel="training return")
+    axes[1].plot(np.asarray(curve["wall_s"]) / 60, curve["return"])
+    axes[1].set(xlabel="wall time (min)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _lookback_plot(runs: Sequence[RunRecord], metrics: Sequence[str], ylabel: str, title: str,
+                   path: Path, reference: dict[tuple[str, int], dict[int, float]] | None = None,
+                   log: bool = False) -> Path:
+    """One line per (metric, embedding size): mean over seeds vs lookback, error bars ±1 std; a dashed
+    line per `reference[(metric, embedding size)]` ({lookback: value}) of a plotted embedding size."""
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    by_dim: dict[object, list[RunRecord]] = defaultdict(list)
+    for record in runs:
+        by_dim[record.config.get("encoder", {}).get("embedding_dim")].append(record)
+    for metric in metrics:
+        for dim in sorted(by_dim, key=str):
+            points: dict[int, list[RunRecord]] = defaultdict(list)
+            for record in by_dim[dim]:
+                points[lookback(record)].append(record)
+            xs, means, errs = [], [], []
+            for x in sorted(points):
+                s = seed_stats(r.metrics.get(metric) for r in points[x])
+                if s is not None:
+                    xs.append(x)
+                    means.append(s.mean)
+                    errs.append(s.std or 0.0)
+            if not xs:
+                continue
+            suffix = f", embedding {dim}" if len(by_dim) > 1 else ""
+            line = ax.errorbar(xs, means, yerr=errs, marker="o", capsize=3, label=f"{metric}{suffix}")
+            paper = (reference or {}).get((metric, dim))
+            if paper:
+                ax.plot(sorted(paper), [paper[k] for k in sorted(paper)], linestyle="--", marker="x",
+                        color=line.lines[0].get_color(), label=f"{metric}{suffix}, paper")
+    if log:
+        ax.set_yscale("log")
+    ax.set(xlabel="lookback (frames)", ylabel=ylabel, title=title)
+    ax.legend(fontsize="small")
+    return _save(fig, path)
+
+
+def _paper_probe_reference() -> dict[tuple[str, int], dict[int, float]]:
+    """The paper's probe figures: (metric, embedding size) -> {lookback: MSE}."""
+    columns = [c.metric for c in PROBE.columns]
+    out: dict[tuple[str, int], dict[int, float]] = defaultdict(dict)
+    for row in PROBE.rows:
+        dim, look = row.labels
+        for i, metric in enumerate(columns):
+            out[(metric, int(dim))][int(look)] = row.paper[i]
+    return dict(out)
+
+
+def plot_probe_lookback(records: Iterable[RunRecord], out: Path, accept: Accept = matches_current_specs,
+                        metrics: Sequence[str] = PROBE_METRICS) -> list[Path]:
+    """`probe-lookback-<preset>.png`: cartpole-probe MSE of the mfTCN encoders vs lookback."""
+    runs = [r for r in counted_runs(records, accept)
+            if r.task == "cartpole-probe" and r.config.get("encoder", {}).get("family") == "mftcn"]
+    return [_lookback_plot(group, metrics, "test MSE (log scale)",
+                           f"cartpole-probe, preset {preset}: mfTCN MSE vs lookback (dashed: paper)",
+                           out / f"probe-lookback-{preset}.png", _paper_probe_reference(), log=True)
+            for (_, preset), group in _group(runs).items()]
+
+
+def plot_pouring_lookback(records: Iterable[RunRecord], out: Path, accept: Accept = matches_current_specs,
+                          metrics: Sequence[str] = POURING_METRICS) -> list[Path]:
+    """`pouring-lookback-<preset>.png`: pouring errors (%) of the mfTCN encoders vs lookback."""
+    runs = [r for r in counted_runs(records, accept)
+            if r.task == "pouring" and r.config.get("encoder", {}).get("family") == "mftcn"]
+    return [_lookback_plot(group, metrics, "error (%)", f"pouring, preset {preset}: mfTCN error vs lookback",
+                           out / f"pouring-lookback-{preset}.png")
+            for (_, preset), group in _group(runs).items()]

@@ -1,0 +1,160 @@
+"""The paper's tables from stored results: our figures (mean ± sample std over seeds, number of seeds)
+beside the paper's, as markdown or LaTeX.
+
+What each table holds is data in `paper_tables`; this module fills its rows from the store. A paper row
+with no stored run shows "-" for ours. Stored runs of a table's tasks that no paper row covers (another
+encoder, another embedding size) follow as extra rows marked "(not in paper)".
+"""
+
+from __future__ import annotations
+
+import re
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+from tabulate import tabulate
+
+from mftcn_bench.results.paper_tables import TABLES, PaperRow, PaperTable
+from mftcn_bench.results.selection import (
+    Accept,
+    code_label,
+    config_value,
+    counted_runs,
+    default_embedding_dim,
+    left_out_line,
+    matches_current_specs,
+    variant_key,
+    variant_label,
+)
+from mftcn_bench.results.stats import STD_KIND, SeedStats, format_mean_std, seed_stats
+from mftcn_bench.results.store import ResultStore, RunRecord
+
+__all__ = ["TABLES", "ReportRow", "matches_current_specs", "render", "report", "table_rows"]
+
+Format = Literal["markdown", "latex"]
+NOT_IN_PAPER = "(not in paper)"
+
+
+@dataclass(frozen=True)
+class ReportRow:
+    """One printed row: label cells, our encoder/task/preset, the seed statistics of each metric column,
+    and the paper's figures (None: a row the paper does not have)."""
+
+    labels: tuple[str, ...]
+    encoder: str
+    task: str
+    preset: str | None
+    seeds: int
+    stats: tuple[SeedStats | None, ...]
+    paper: tuple[float | None, ...] | None
+    code: str = "-"   # the encoder's distribution and version (`selection.code_label`) of the rows' runs
+
+
+def _row_matches(row: PaperRow, record: RunRecord) -> bool:
+    if record.encoder != row.encoder or record.task != row.task:
+        return False
+    where = dict(row.where)
+    default_dim = default_embedding_dim(row.encoder, row.task)
+    if "encoder.embedding_dim" not in where and default_dim is not None:
+        where["encoder.embedding_dim"] = default_dim  # an overridden size is another row
+    return all(config_value(record, key) == value for key, value in where.items())
+
+
+def _stats(table: PaperTable, runs: Sequence[RunRecord]) -> tuple[SeedStats | None, ...]:
+    return tuple(seed_stats(r.metrics.get(c.metric) for r in runs) for c in table.columns)
+
+
+def _code(runs: Sequence[RunRecord]) -> str:
+    return ", ".join(sorted({code_label(r) for r in runs})) or "-"
+
+
+def _by_preset(runs: Iterable[RunRecord]) -> dict[str, list[RunRecord]]:
+    groups: dict[str, list[RunRecord]] = defaultdict(list)
+    for record in runs:
+        groups[record.preset].append(record)
+    return dict(sorted(groups.items()))
+
+
+def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | None = None,
+               accept: Accept = matches_current_specs) -> list[ReportRow]:
+    """The table's rows from `records`: each paper row once per preset that has runs for it (or once with
+    "-" when none has), then the runs no paper row covers."""
+    runs = [r for r in counted_runs(records, accept)
+            if r.task in table.tasks and (preset is None or r.preset == preset)]
+    used: set[str] = set()
+    rows: list[ReportRow] = []
+    for paper_row in table.rows:
+        matched = [r for r in runs if _row_matches(paper_row, r)]
+        used.update(r.run_id for r in matched)
+        groups = _by_preset(matched)
+        if not groups:
+            rows.append(ReportRow(paper_row.labels, paper_row.encoder, paper_row.task, preset, 0,
+                                  (None,) * len(table.columns), paper_row.paper))
+        for preset_name, group in groups.items():
+            rows.append(ReportRow(paper_row.labels, paper_row.encoder, paper_row.task, preset_name, len(group),
+                                  _stats(table, group), paper_row.paper, _code(group)))
+    extra: dict[tuple, list[RunRecord]] = defaultdict(list)
+    for record in runs:
+        if record.run_id not in used:
+            extra[variant_key(record)].append(record)
+    blank = ("",) * (len(table.label_headers) - 1)
+    for group in extra.values():
+        first = group[0]
+        rows.append(ReportRow((NOT_IN_PAPER, *blank), variant_label(first), first.task, first.preset, len(group),
+                              _stats(table, group), None, _code(group)))
+    return rows
+
+
+_LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$",
+                  "^": r"\^{}", "~": r"\~{}", "{": r"\{", "}": r"\}"}
+
+
+def _latex_escape(text: str) -> str:
+    return re.sub("[" + re.escape("".join(_LATEX_SPECIAL)) + "]", lambda m: _LATEX_SPECIAL[m.group()], text)
+
+
+def _cell(stats: SeedStats | None, paper: float | None, has_paper: bool, decimals: int, fmt: Format) -> str:
+    ours = format_mean_std(stats, decimals, pm="$\\pm$" if fmt == "latex" else "±")
+    if not has_paper:
+        return ours
+    return f"{ours} ({'-' if paper is None else f'{paper:.{decimals}f}'})"
+
+
+def render(table: PaperTable, rows: Sequence[ReportRow], fmt: Format = "markdown") -> str:
+    """The table as text: a title, what the figures are, and the rows."""
+    multi_task = len(table.tasks) > 1
+    headers = [*table.label_headers, "encoder", *(["task"] if multi_task else []), "preset", "seeds",
+               *(c.label for c in table.columns), "encoder code"]
+    body = []
+    for row in rows:
+        cells = [_cell(s, row.paper[i] if row.paper else None, row.paper is not None, table.decimals, fmt)
+                 for i, s in enumerate(row.stats)]
+        labels = [*row.labels, row.encoder, *([row.task] if multi_task else []), row.preset or "-",
+                  str(row.seeds)]
+        if fmt == "latex":
+            labels = [_latex_escape(text) for text in labels]
+        body.append([*labels, *cells, _latex_escape(row.code) if fmt == "latex" else row.code])
+    explain = (f"Ours: mean ± {STD_KIND} (seeds = n); the paper's figure in brackets, \"-\" where it has "
+               f"none. Only runs of the current spec files count (embedding size may be overridden). "
+               f"{table.note}").strip()
+    if fmt == "latex":
+        headers = [_latex_escape(h) for h in headers]
+        text = tabulate(body, headers=headers, tablefmt="latex_raw", disable_numparse=True)
+        caption = _latex_escape(f"{table.title}. {explain}").replace("±", "$\\pm$")
+        return f"\\begin{{table}}[h]\n\\caption{{{caption}}}\n\\centering\n{text}\n\\end{{table}}"
+    text = tabulate(body, headers=headers, tablefmt="github", disable_numparse=True)
+    return f"### {table.title}\n\n{explain}\n\n{text}"
+
+
+def report(store: ResultStore, names: Sequence[str], preset: str | None = None, fmt: Format = "markdown",
+           accept: Accept = matches_current_specs) -> str:
+    """The named tables (see TABLES) rendered from `store`, separated by blank lines."""
+    records = store.query(preset=preset)
+    parts = [render(TABLES[name], table_rows(TABLES[name], records, preset, accept), fmt) for name in names]
+    tasks = {task for name in names for task in TABLES[name].tasks}
+    skipped = left_out_line([r for r in records if r.task in tasks], accept)
+    if skipped:
+        parts.append(f"% {skipped}" if fmt == "latex" else skipped)
+    return "\n\n".join(parts)

@@ -1,0 +1,125 @@
+"""Which stored runs a table, leaderboard or plot counts.
+
+A run counts when it was made with today's spec files for its encoder, task and preset, with at most the
+embedding size overridden (the paper's tables vary it): runs of older specs or other overrides are never
+mixed in. Of several such runs of one (encoder, task, preset, embedding size, seed), the latest counts.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from mftcn_bench.core import registry
+from mftcn_bench.core.errors import BenchError
+from mftcn_bench.core.specs import resolve_config
+from mftcn_bench.results.store import RunRecord
+
+Accept = Callable[[RunRecord], bool]
+
+
+def exclusion(record: RunRecord) -> str | None:
+    """Why a stored run does not count for today's specs (None: it counts)."""
+    try:
+        encoder, task = registry.get("encoders", record.encoder), registry.get("tasks", record.task)
+    except BenchError:
+        return "encoder or task not installed here"
+    try:
+        _, config = resolve_config(encoder.spec, task.spec, record.preset,
+                                   [("encoder.embedding_dim", record.config["encoder"]["embedding_dim"])])
+    except (BenchError, KeyError, TypeError):
+        return "a config today's specs cannot reproduce"
+    if config["encoder"] != record.config["encoder"] or config["task"] != record.config["task"]:
+        return "older spec files or other overrides"
+    return None
+
+
+def matches_current_specs(record: RunRecord) -> bool:
+    """Whether a stored run used today's spec files for its encoder, task and preset, with at most the
+    embedding size overridden."""
+    return exclusion(record) is None
+
+
+def left_out(records: Iterable[RunRecord], accept: Accept = matches_current_specs) -> dict[str, int]:
+    """How many of `records` `counted_runs` leaves out, by reason."""
+    records = list(records)
+    reasons: Counter[str] = Counter()
+    for record in records:
+        if not accept(record):
+            reasons[(exclusion(record) if accept is matches_current_specs else None) or "not selected"] += 1
+    superseded = sum(1 for r in records if accept(r)) - len(counted_runs(records, accept))
+    if superseded:
+        reasons["a later run of the same seed counts instead"] += superseded
+    return dict(sorted(reasons.items()))
+
+
+def left_out_line(records: Iterable[RunRecord], accept: Accept = matches_current_specs) -> str | None:
+    """`Left out: 3 stored runs (2 older spec files ..., 1 ...).`, or None when every run counts."""
+    reasons = left_out(records, accept)
+    if not reasons:
+        return None
+    total = sum(reasons.values())
+    return (f"Left out: {total} stored run{'s' if total > 1 else ''} ("
+            + "; ".join(f"{n}: {why}" for why, n in reasons.items()) + ").")
+
+
+def code_label(record: RunRecord) -> str:
+    """The encoder's code as recorded: `my-plugin 0.2.0` for a plugin, `mftcn-bench 0.1.0` for a built-in
+    (runs recorded before code identities name the harness's version)."""
+    code = config_value(record, "code.encoder")
+    if isinstance(code, dict) and code.get("distribution"):
+        return f"{code['distribution']} {code.get('version') or '?'}"
+    return f"mftcn-bench {record.versions.get('mftcn-bench', '?')}"
+
+
+def config_value(record: RunRecord, dotted: str) -> Any:
+    """A value of the run's resolved config by dotted key (`encoder.embedding_dim`); None if absent."""
+    node: Any = record.config
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def embedding_dim(record: RunRecord) -> int | None:
+    return config_value(record, "encoder.embedding_dim")
+
+
+def variant_key(record: RunRecord) -> tuple[str, str, str, Any]:
+    """(encoder, task, preset, embedding size): runs of one variant differ only by seed."""
+    return record.encoder, record.task, record.preset, embedding_dim(record)
+
+
+def counted_runs(records: Iterable[RunRecord], accept: Accept = matches_current_specs) -> list[RunRecord]:
+    """The accepted runs, the latest per (variant, seed), ordered by variant then seed."""
+    latest: dict[tuple, RunRecord] = {}
+    for record in records:
+        if not accept(record):
+            continue
+        key = (*variant_key(record), record.seed)
+        kept = latest.get(key)
+        if kept is None or (record.created_at, record.run_id) > (kept.created_at, kept.run_id):
+            latest[key] = record
+    return [latest[k] for k in sorted(latest, key=lambda k: tuple(str(p) for p in k[:4]) + (k[4],))]
+
+
+def default_embedding_dim(encoder: str, task: str | None = None) -> int | None:
+    """The embedding size the encoder has on `task` without overrides: its spec file's, or the task's
+    `[encoder_defaults.<encoder>]` (None for an encoder or task not installed)."""
+    try:
+        dim = registry.get("encoders", encoder).spec.embedding_dim
+        if task is not None:
+            dim = registry.get("tasks", task).spec.encoder_defaults.get(encoder, {}).get("embedding_dim", dim)
+        return dim
+    except BenchError:
+        return None
+
+
+def variant_label(record: RunRecord) -> str:
+    """The encoder's name, with the embedding size when it was overridden."""
+    dim, default = embedding_dim(record), default_embedding_dim(record.encoder, record.task)
+    if dim is not None and default is not None and dim != default:
+        return f"{record.encoder} (embedding {dim})"
+    return record.encoder

@@ -1,0 +1,1 @@
+"""One run, spec -> data -> encoder -> task -> result (`runner`), and the encoder conformance check."""

@@ -1,0 +1,238 @@
+"""`mftcn-bench check encoder NAME`: the encoder contract, run against any registered encoder.
+
+On a small synthetic dataset (textured frames that encode view, episode and time; nothing is rendered)
+shaped like the cartpole-probe smoke preset's, with the encoder's config for that preset, it checks what
+the harness relies on and a wrong implementation would get past silently: the spec loads, the class
+satisfies `Encoder`, its metadata matches the spec, a short fit returns statistics, embeddings have the
+right shape, dtype and finite values, `embed_episode` and the rollout path (`streaming`, or the clip window
+over `embed`) give `embed`'s embeddings of the same clips (within `TOLERANCE`), a second instance with the
+same seed gives the same embeddings, and a save / load round trip keeps them. One line per check.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import traceback
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mftcn_bench.core.home import BenchHome
+from mftcn_bench.data.dataset import MultiViewDataset, ensure_dataset
+from mftcn_bench.data.synthetic import synthetic_collector
+from mftcn_bench.encoders.base import (
+    Encoder,
+    EncoderInfo,
+    EpisodeEmbedder,
+    FitBudget,
+    StreamingEncoder,
+    check_embeddings,
+    embed_clips_of_episode,
+    embed_episode,
+    uses_pixels,
+)
+from mftcn_bench.run.runner import PreparedRun, RunRequest, attach_feature_cache, construct_encoder, prepare
+
+# Two paths to the same embedding may differ by TOLERANCE times the embeddings' largest magnitude (at least
+# 1): batch size changes the order of float32 sums in convolutions.
+TOLERANCE = 1e-5
+TASK, PRESET = "cartpole-probe", "smoke"  # the dataset shape and the encoder's (small) training budget
+
+
+@dataclass(frozen=True)
+class CheckLine:
+    """One check's outcome: `ok`, `FAIL` or `skip`, its name and what was measured or went wrong."""
+
+    status: str
+    name: str
+    detail: str
+
+    def __str__(self) -> str:
+        return f"{self.status:<4}  {self.name:<14}  {self.detail}"
+
+
+class _Failed(Exception):
+    pass
+
+
+def _max_diff(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.max(np.abs(a.astype(np.float64) - b.astype(np.float64)))) if a.size else 0.0
+
+
+def _same(name: str, a: np.ndarray, b: np.ndarray, what: str) -> str:
+    if a.shape != b.shape:
+        raise _Failed(f"{what}: shapes {a.shape} and {b.shape} differ")
+    diff, bound = _max_diff(a, b), TOLERANCE * max(1.0, float(np.max(np.abs(b), initial=0.0)))
+    if not diff <= bound:
+        raise _Failed(f"{what}: max |difference| {diff:.3g} > {bound:.3g}")
+    return f"{what}: max |difference| {diff:.2g} (allowed {bound:.2g})"
+
+
+class EncoderCheck:
+    """The checks of one registered encoder, run in order in a scratch folder."""
+
+    def __init__(self, name: str, workdir: Path, overrides: Sequence[tuple[str, Any]] = ()) -> None:
+        self.name, self.workdir = name, workdir
+        self.overrides = tuple(overrides)
+        self.home = BenchHome(workdir / "home")
+        self.prepared: PreparedRun | None = None
+        self.dataset: MultiViewDataset | None = None
+        self.encoder: Encoder | None = None
+
+    def _new(self) -> Encoder:
+        assert self.prepared is not None and self.dataset is not None
+        return construct_encoder(self.prepared.encoder_entry, self.prepared.config["encoder"],
+                                 self.prepared.request.seed, self.dataset.image_shape)
+
+    def _fit(self, encoder: Encoder, folder: str) -> dict[str, float]:
+        assert self.prepared is not None and self.dataset is not None
+        attach_feature_cache(encoder, self.dataset, self.home, show_progress=False)
+        if not encoder.needs_fit:
+            return {}
+        calls: list[tuple] = []
+        steps = int(self.prepared.config["encoder"].get("train", {}).get("steps", 1))
+        stats = encoder.fit(self.dataset, FitBudget(steps=steps), lambda *a: calls.append(a),
+                            self.workdir / folder)
+        if not isinstance(stats, dict) or not all(isinstance(v, int | float) for v in stats.values()):
+            raise _Failed(f"fit returned {type(stats).__name__} {stats!r:.80}; expected a dict of floats")
+        if calls and not (isinstance(calls[-1][0], int) and isinstance(calls[-1][1], int)
+                          and isinstance(calls[-1][2], dict)):
+            raise _Failed(f"progress was called as {calls[-1]!r:.80}; expected (step, total, {{name: value}})")
+        return stats
+
+    def _episodes(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        assert self.dataset is not None
+        view = 0
+        return [(e.frames[view], e.state) for e in self.dataset.iter_episodes("test")]
+
+    # -- the checks, in order ---------------------------------------------------------------------------
+
+    def spec(self) -> str:
+        self.prepared = prepare(RunRequest(self.name, TASK, PRESET, 0, self.overrides))
+        config = {**self.prepared.task.dataset_config, "name": "conformance", "pattern": "gradient"}
+        self.dataset = ensure_dataset(self.home.datasets, config, synthetic_collector, show_progress=False)
+        entry = self.prepared.encoder_entry
+        return f"{entry.entry_point.value}; config of preset {TASK}/{PRESET}"
+
+    def construct(self) -> str:
+        self.encoder = self._new()
+        return f"{type(self.encoder).__name__} satisfies Encoder"
+
+    def metadata(self) -> str:
+        assert self.encoder is not None and self.prepared is not None and self.dataset is not None
+        info, spec = self.encoder.info, self.prepared.config["encoder"]
+        if not isinstance(info, EncoderInfo):
+            raise _Failed(f"info is a {type(info).__name__}, not an EncoderInfo")
+        expected = {"name": self.name, "frames": spec.get("frames", 1), "stride": spec.get("stride", 1),
+                    "embedding_dim": spec["embedding_dim"], "image_shape": tuple(self.dataset.image_shape)}
+        wrong = [f"{k} {getattr(info, k)!r} (spec: {v!r})" for k, v in expected.items()
+                 if (tuple(getattr(info, k)) if k == "image_shape" else getattr(info, k)) != v]
+        if wrong:
+            raise _Failed("info disagrees with the spec: " + ", ".join(wrong))
+        if not isinstance(info.parameter_count, int) or info.parameter_count < 0:
+            raise _Failed(f"parameter_count {info.parameter_count!r} is not an int >= 0")
+        return (f"{info.frames} frames at stride {info.stride}, {info.embedding_dim}-d, image (H, W) "
+                f"{info.image_shape}, {info.parameter_count:,} parameters")
+
+    def fit(self) -> str:
+        assert self.encoder is not None
+        stats = self._fit(self.encoder, "fit-a")
+        if not self.encoder.needs_fit:
+            return "needs_fit is False: nothing trained"
+        return "returned " + (", ".join(f"{k}={v:.4g}" for k, v in list(stats.items())[:3]) or "{}")
+
+    def embed(self) -> str:
+        assert self.encoder is not None
+        frames, state = self._episodes()[0]
+        reference = embed_clips_of_episode(self.encoder, frames, state)
+        check_embeddings(self.encoder, reference, len(frames))
+        return f"float32 {reference.shape}, finite, over every clip of a {len(frames)}-frame episode"
+
+    def embed_episode(self) -> str:
+        assert self.encoder is not None
+        if not isinstance(self.encoder, EpisodeEmbedder):
+            return "not provided: the harness builds every clip and calls embed"
+        lines = []
+        for frames, state in self._episodes():
+            lines.append(_same("embed_episode", embed_episode(self.encoder, frames, state),
+                               embed_clips_of_episode(self.encoder, frames, state), "vs embed"))
+        return lines[-1] + f" ({len(lines)} episodes)"
+
+    def streaming(self) -> str:
+        """Two environments fed frame by frame, the second restarting mid-way: each step's output is the
+        embedding of the clip ending there."""
+        from mftcn_bench.rl.observers import make_observer
+
+        assert self.encoder is not None
+        (a_frames, a_state), (b_frames, b_state) = self._episodes()[:2]
+        half = len(b_frames) // 2
+        pixels = uses_pixels(self.encoder)
+        observer = make_observer(self.encoder, 2)
+        got, want = [], []
+        ref_a = embed_clips_of_episode(self.encoder, a_frames, a_state)
+        ref_b1 = embed_clips_of_episode(self.encoder, b_frames[:half], b_state[:half])
+        ref_b2 = embed_clips_of_episode(self.encoder, b_frames[half:], b_state[half:])
+        for t in range(len(a_frames)):
+            tb = t if t < half else t - half
+            b_f, b_s = (b_frames, b_state) if t < half else (b_frames[half:], b_state[half:])
+            frames = np.stack([a_frames[t], b_f[tb]]) if pixels else None
+            start = np.array([t == 0, t == 0 or t == half])
+            out = observer.push(frames, start, np.stack([a_state[t], b_s[tb]]))
+            got.append(out)
+            want.append(np.stack([ref_a[t], (ref_b1 if t < half else ref_b2)[tb]]))
+        how = "streaming()" if isinstance(self.encoder, StreamingEncoder) else "clip window over embed"
+        return _same("streaming", np.stack(got), np.stack(want), f"{how} vs embed, 2 environments, a restart")
+
+    def determinism(self) -> str:
+        assert self.encoder is not None
+        twin = self._new()
+        self._fit(twin, "fit-b")
+        frames, state = self._episodes()[0]
+        return _same("determinism", embed_clips_of_episode(twin, frames, state),
+                     embed_clips_of_episode(self.encoder, frames, state), "a second fit with seed 0")
+
+    def save_load(self) -> str:
+        assert self.encoder is not None
+        path = self.workdir / "saved" / "model.pt"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.encoder.save(path)
+        loaded = self._new()
+        loaded.load(path)
+        attach_feature_cache(loaded, self.dataset, self.home, show_progress=False)
+        frames, state = self._episodes()[0]
+        return _same("save-load", embed_clips_of_episode(loaded, frames, state),
+                     embed_clips_of_episode(self.encoder, frames, state), "loaded vs saved")
+
+    def run(self) -> Iterator[CheckLine]:
+        checks: list[tuple[str, Callable[[], str]]] = [
+            ("spec", self.spec), ("construct", self.construct), ("metadata", self.metadata), ("fit", self.fit),
+            ("embed", self.embed), ("embed_episode", self.embed_episode), ("streaming", self.streaming),
+            ("determinism", self.determinism), ("save-load", self.save_load)]
+        blocked = None
+        for name, check in checks:
+            if blocked is not None:
+                yield CheckLine("skip", name, f"needs {blocked}")
+                continue
+            try:
+                yield CheckLine("ok", name, check())
+            except _Failed as exc:
+                yield CheckLine("FAIL", name, str(exc))
+            except Exception as exc:  # noqa: BLE001 - a plugin's failure of any kind is this check's result
+                where = traceback.extract_tb(exc.__traceback__)[-1]
+                yield CheckLine("FAIL", name, f"{type(exc).__name__}: {exc} ({Path(where.filename).name}:"
+                                              f"{where.lineno})")
+                if name in ("spec", "construct", "fit"):
+                    blocked = name
+
+
+def check_encoder(name: str, overrides: Sequence[tuple[str, Any]] = (),
+                  workdir: Path | None = None) -> Iterator[CheckLine]:
+    """The check lines of encoder `name`, computed in `workdir` (a temporary folder when None)."""
+    if workdir is not None:
+        yield from EncoderCheck(name, workdir, overrides).run()
+        return
+    with tempfile.TemporaryDirectory(prefix="mftcn-check-") as tmp:
+        yield from EncoderCheck(name, Path(tmp), overrides).run()

@@ -1,0 +1,307 @@
+"""One run, spec -> build -> run -> result: resolve the config, make or reuse the dataset, fit or reuse the
+encoder, evaluate the task, store the result.
+
+Identities are content hashes (`identity`): a run's id covers the resolved config (encoder spec, task
+spec, preset values, overrides), preset name, seed, the dataset's fingerprint, the library versions and
+the code of the encoder, the task and the runner (a plugin's distribution, version and source); an
+encoder's checkpoint key covers its resolved spec, the dataset fingerprint, the seed and the encoder's
+code, so tasks that share a dataset share the trained encoder and nothing else is ever served from a cache.
+`--force` computes a run again: an equal result replaces the stored one, a different one (nondeterminism)
+is stored under its own id and named as a rerun, so one id never stands for two results.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from mftcn_bench.core import identity, registry
+from mftcn_bench.core.errors import BenchError, BenchWarning, SpecError
+from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
+from mftcn_bench.core.home import BenchHome
+from mftcn_bench.core.provenance import canonical_json, content_hash, versions, warn_if_dirty
+from mftcn_bench.core.specs import EncoderSpec, encoder_spec_from_config, resolve_config
+from mftcn_bench.data.dataset import MultiViewDataset, check_dataset_config, ensure_dataset
+from mftcn_bench.encoders.base import Encoder, FeatureCacheUser, FitBudget, MultiViewTrainer
+from mftcn_bench.encoders.bases import FrozenBase
+from mftcn_bench.encoders.feature_cache import ensure_feature_cache
+from mftcn_bench.results.store import ResultStore, RunRecord
+from mftcn_bench.tasks.base import NeedsArtifacts, Task
+
+
+@dataclass(frozen=True)
+class RunRequest:
+    """What `mftcn-bench run` was asked for."""
+
+    encoder: str
+    task: str
+    preset: str | None = None
+    seed: int = 0
+    overrides: Sequence[tuple[str, Any]] = field(default_factory=tuple)
+    force: bool = False
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    record: RunRecord
+    reused: bool
+    table: list[dict[str, Any]]
+    notes: list[str]
+
+
+@dataclass(frozen=True)
+class PreparedRun:
+    """A request resolved against the registry and specs, with its task built."""
+
+    request: RunRequest
+    preset: str
+    config: dict[str, Any]
+    encoder_entry: registry.Entry
+    task: Task
+    code: identity.RunCode
+
+
+def run_id_of(prepared: PreparedRun, dataset_fingerprint: str) -> str:
+    """The id of `prepared` on the dataset with `dataset_fingerprint`."""
+    return identity.run_id(prepared.config, prepared.preset, prepared.request.seed, dataset_fingerprint,
+                           prepared.code)
+
+
+def encoder_key_of(prepared: PreparedRun, dataset_fingerprint: str,
+                   base_identity: Mapping[str, Any] | None = None) -> str:
+    """The key of the trained encoder that `prepared` fits or reuses."""
+    return identity.encoder_fit_key(prepared.config["encoder"], dataset_fingerprint, prepared.request.seed,
+                                    prepared.code.encoder, base_identity)
+
+
+def prepare(request: RunRequest) -> PreparedRun:
+    """Resolve names, preset and overrides; build the task. Fails fast on bad input, before any work."""
+    if request.seed < 0:
+        raise BenchError(f"seed must be a non-negative integer, got {request.seed}")
+    encoder_entry = registry.get("encoders", request.encoder)
+    task_entry = registry.get("tasks", request.task)
+    preset, config = resolve_config(encoder_entry.spec, task_entry.spec, request.preset, request.overrides)
+    spec = encoder_spec_from_config(encoder_entry.description, config["encoder"])  # validates overrides
+    encoder_class = encoder_entry.load()  # a plugin that fails to import fails here, before any work
+    task = task_entry.load()(config["task"], request.seed)
+    if not isinstance(task, Task):
+        raise BenchError(f"task {request.task!r} ({task_entry.entry_point.value}) does not implement the Task "
+                         f"protocol (dataset_config, collector, evaluate, table)")
+    dataset_config = task.dataset_config
+    if isinstance(dataset_config, Mapping):  # sizes that cannot work are refused before collecting anything
+        check_dataset_config(dataset_config)
+        _check_views(encoder_entry, config["encoder"], request.seed, dataset_config)
+        length = dataset_config.get("episode_length")
+        if isinstance(length, int) and spec.lookback > length:
+            raise SpecError(f"encoder {spec.name!r} has a lookback of {spec.lookback} frames ({spec.frames} at "
+                            f"stride {spec.stride}), longer than the task's {length}-frame episodes; use an "
+                            f"encoder with lookback <= {length} or set task.dataset.episode_length >= "
+                            f"{spec.lookback}")
+    return PreparedRun(request, preset, config, encoder_entry, task, identity.run_code(encoder_class, task))
+
+
+def prepare_dataset(prepared: PreparedRun, home: BenchHome, show_progress: bool = True) -> MultiViewDataset:
+    """The task's dataset, after whatever the task needs to collect it (an expert policy for demos)."""
+    if isinstance(prepared.task, NeedsArtifacts):
+        prepared.task.prepare_artifacts(home, show_progress)
+    return ensure_dataset(home.datasets, prepared.task.dataset_config, prepared.task.collector,
+                          show_progress=show_progress)
+
+
+def _progress_bar(name: str, enabled: bool):
+    from tqdm import tqdm
+
+    bar = tqdm(desc=f"fit {name}", unit="step", disable=not enabled, leave=False)
+
+    def report(step: int, total: int, stats: dict[str, float]) -> None:
+        bar.total = total
+        bar.n = step
+        bar.set_postfix({k: f"{v:.4f}" for k, v in stats.items()}, refresh=False)
+        bar.refresh()
+
+    return bar, report
+
+
+def encoder_workdir(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
+                    base_identity: Mapping[str, Any] | None = None) -> Path:
+    """The folder of the encoder this run fits or reuses (`encoder_key_of`; for a frozen base the key also
+    holds the base's identity, its weights' checksum)."""
+    key = encoder_key_of(prepared, dataset.fingerprint, base_identity)
+    return home.encoders / f"{prepared.config['encoder']['name']}-{key}"
+
+
+def frozen_base_of(encoder: Encoder) -> FrozenBase | None:
+    """The encoder's frozen base when it declares one (the `FeatureCacheUser` capability)."""
+    return encoder.frozen_base() if isinstance(encoder, FeatureCacheUser) else None
+
+
+def attach_feature_cache(encoder: Encoder, dataset: MultiViewDataset, home: BenchHome,
+                         show_progress: bool = True) -> dict[str, Any] | None:
+    """Build (or find) the per-frame feature cache of the encoder's frozen base on `dataset` and hand it to
+    the encoder; returns what the run records about it (None: the encoder has no frozen base)."""
+    base = frozen_base_of(encoder)
+    if base is None or not isinstance(encoder, FeatureCacheUser):
+        return None
+    cache = ensure_feature_cache(home.features, dataset, base, base.identity(), show_progress=show_progress)
+    encoder.use_feature_cache(cache)
+    return {**cache.summary(), "base": base.identity()}
+
+
+def construct_encoder(entry: registry.Entry, encoder_config: Mapping[str, Any], seed: int,
+                      image_shape: tuple[int, int]) -> Encoder:
+    """An encoder, constructed (untrained) for frames of `image_shape` (height, width)."""
+    spec = encoder_spec_from_config(entry.description, encoder_config)
+    encoder = entry.load()(spec, image_shape=image_shape, seed=seed)
+    if not isinstance(encoder, Encoder):
+        raise BenchError(f"encoder {spec.name!r} ({entry.entry_point.value}) does not "
+                         f"implement the Encoder protocol (info, needs_fit, fit, embed, save, load)")
+    return encoder
+
+
+def _check_views(entry: registry.Entry, encoder_config: Mapping[str, Any], seed: int,
+                 dataset_config: Mapping[str, Any]) -> None:
+    """Refuse, before any data is collected, an encoder that trains on more camera views than the task's
+    dataset has (constructing it also refuses a model table it cannot build)."""
+    cameras = list(dataset_config.get("cameras", ()))
+    shape = (dataset_config.get("height"), dataset_config.get("width"))
+    if not all(isinstance(x, int) for x in shape):
+        return
+    encoder = construct_encoder(entry, encoder_config, seed, shape)
+    if isinstance(encoder, MultiViewTrainer) and encoder.training_views > len(cameras):
+        raise SpecError(f"encoder {entry.name!r} trains on {encoder.training_views} camera views of each "
+                        f"moment; the task's dataset has {len(cameras)} ({', '.join(cameras) or 'none'}): give "
+                        f"task.dataset.cameras at least {encoder.training_views} cameras")
+
+
+def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
+                  show_progress: bool = True) -> tuple[Encoder, dict[str, Any]]:
+    """The encoder for this run, fitted on `dataset` or loaded from the shared checkpoint."""
+    spec = encoder_spec_from_config(prepared.encoder_entry.description, prepared.config["encoder"])
+    encoder = construct_encoder(prepared.encoder_entry, prepared.config["encoder"], prepared.request.seed,
+                                dataset.image_shape)
+    base = frozen_base_of(encoder)
+    if not encoder.needs_fit:
+        cache = attach_feature_cache(encoder, dataset, home, show_progress)
+        return encoder, {"fitted": False, "reused": False, **({} if cache is None else {"feature_cache": cache})}
+    workdir = encoder_workdir(prepared, dataset, home, None if base is None else base.identity())
+    with exclusive_lock(home.encoders / f".{workdir.name}.lock"):  # concurrent runs fit it once
+        # A stored checkpoint is loaded (and refused if it cannot be) before the cache is built.
+        fit = _fit_or_load(encoder, spec, dataset, workdir, prepared.request.force, show_progress,
+                           before_fit=lambda: attach_feature_cache(encoder, dataset, home, show_progress))
+    cache = attach_feature_cache(encoder, dataset, home, show_progress)  # found, if the fit built it
+    return encoder, {**fit, **({} if cache is None else {"feature_cache": cache})}
+
+
+def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset, workdir: Path, force: bool,
+                 show_progress: bool, before_fit: Callable[[], object] = lambda: None) -> dict[str, Any]:
+    """Load the checkpoint in `workdir`, or fit (resuming a killed fit, after `before_fit`) and save it.
+
+    A fit is finished when `fit.json` exists: it is written atomically after `save` returned, so a save cut
+    off by a kill (a plugin's `save` need not be atomic) is never taken for a finished checkpoint."""
+    model_path, fit_file = workdir / "model.pt", workdir / "fit.json"
+    if force and workdir.exists():
+        shutil.rmtree(workdir)
+    if fit_file.exists():
+        encoder.load(model_path)
+        trained = json.loads(fit_file.read_text())
+        return {"fitted": False, **trained, "reused": True, "checkpoint": str(model_path)}
+    workdir.mkdir(parents=True, exist_ok=True)
+    for stale in workdir.glob(".*.tmp-*"):  # a checkpoint write cut off by a kill (we hold the lock): never read
+        stale.unlink()
+    before_fit()
+    train = dict(spec.train)
+    budget = FitBudget(steps=int(train.get("steps", 0)), max_seconds=train.get("max_seconds") or None)
+    bar, report = _progress_bar(spec.name, show_progress)
+    try:
+        fit_stats = encoder.fit(dataset, budget, report, workdir)
+    except BaseException:
+        if not any(workdir.iterdir()):  # nothing to resume from: leave no empty folder behind
+            workdir.rmdir()
+        raise
+    finally:
+        bar.close()
+    encoder.save(model_path)
+    atomic_write_bytes(fit_file, json.dumps(fit_stats, indent=1).encode())
+    (workdir / "train_checkpoint.pt").unlink(missing_ok=True)
+    return {"fitted": True, "reused": False, "checkpoint": str(model_path), **fit_stats}
+
+
+class RerunWarning(BenchWarning):
+    """`--force` gave a result that differs from the stored run of the same id."""
+
+
+def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> RunOutcome:
+    """Run (or reuse) one (encoder, task, preset, seed) and return its stored record."""
+    began = time.monotonic()
+    prepared = prepare(request)
+    store = ResultStore(home.database)
+    store.check_writable()
+    warn_if_dirty()
+    dataset = prepare_dataset(prepared, home, show_progress)
+    after_data = time.monotonic()
+    run_id = run_id_of(prepared, dataset.fingerprint)
+    existing = store.get(run_id)
+    if existing is not None and not request.force:
+        return RunOutcome(existing, True, prepared.task.table(existing.metrics),
+                          existing.config.get("notes", []))
+    encoder, fit = build_encoder(prepared, dataset, home, show_progress)
+    after_fit = time.monotonic()
+    # A forced rerun computes from scratch in a folder of its own; a first run keeps its folder, so a
+    # killed evaluation resumes from its checkpoints there.
+    run_dir = home.runs / (f".{run_id}.rerun" if existing is not None else run_id)
+    if existing is not None:
+        shutil.rmtree(run_dir, ignore_errors=True)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        result = prepared.task.evaluate(encoder, dataset, run_dir)
+    except BaseException:
+        if existing is not None or not any(run_dir.iterdir()):  # nothing to resume from: leave no folder behind
+            shutil.rmtree(run_dir, ignore_errors=True)
+        raise
+    done = time.monotonic()
+    if "train" in result.curves:  # the learning curve beside the result (matplotlib only when needed)
+        from mftcn_bench.results.plots import plot_run_curve
+
+        plot_run_curve(result.curves["train"], run_dir / "curve.png", f"{request.encoder} on {request.task}")
+    record_id = run_id
+    if existing is not None:
+        if canonical_json(existing.metrics) == canonical_json(result.metrics):
+            shutil.rmtree(run_dir, ignore_errors=True)  # reproduced: the stored record and folder stay
+            return RunOutcome(existing, False, prepared.task.table(existing.metrics),
+                              [*result.notes, f"--force: computed again, the same metrics as stored run {run_id}"])
+        record_id = content_hash({"rerun_of": run_id, "metrics": result.metrics})
+        warnings.warn(f"--force: run {run_id} gave other metrics this time (not deterministic on this machine?); "
+                      f"the stored result stays, the new one is run {record_id}", RerunWarning, stacklevel=2)
+    final_dir = home.runs / record_id
+    record = RunRecord(
+        run_id=record_id, encoder=request.encoder, task=request.task, preset=prepared.preset,
+        seed=request.seed, dataset_id=dataset.fingerprint,
+        config={**prepared.config, "preset": prepared.preset, "seed": request.seed,
+                "encoder_info": asdict(encoder.info), "code": prepared.code.as_dict(), "fit": fit,
+                "notes": result.notes, "dataset_path": str(dataset.root),
+                **({"rerun_of": run_id} if record_id != run_id else {})},
+        versions=versions(), metrics=result.metrics,
+        timings={"dataset_s": after_data - began, "fit_s": after_fit - after_data,
+                 "evaluate_s": done - after_fit, "total_s": done - began},
+        artifacts=str(final_dir),
+        created_at=datetime.now(UTC).isoformat(timespec="seconds"),
+        curves=result.curves,
+    )
+    try:
+        atomic_write_bytes(run_dir / "result.json", json.dumps(asdict(record), indent=1, sort_keys=True).encode())
+        if run_dir != final_dir:
+            shutil.rmtree(final_dir, ignore_errors=True)  # a rerun of this same result, killed before storing
+            run_dir.rename(final_dir)
+        store.put(record)
+    except BaseException:
+        for folder in {run_dir, final_dir}:  # a result is in the store with its folder, or nowhere
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
+    return RunOutcome(record, False, prepared.task.table(result.metrics), result.notes)
