@@ -10,10 +10,13 @@ harness.
 
 from __future__ import annotations
 
+import functools
 import importlib.resources
+import sys
 import warnings
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
+from pathlib import Path
 from typing import Any, Literal
 
 from mftcn_bench.core.errors import BenchError, BenchWarning, SpecError, did_you_mean
@@ -98,12 +101,44 @@ def _family_variants(kind: Kind, ep: EntryPoint) -> dict[str, tuple[EntryPoint, 
     return out
 
 
+@functools.cache
+def _entry_points(group: str, path: tuple[str, ...]) -> tuple[EntryPoint, ...]:
+    return tuple(entry_points(group=group))  # reading every distribution's metadata: once per sys.path
+
+
+def _spec_stamps(kind: Kind, eps: tuple[EntryPoint, ...]) -> tuple:
+    """(file, mtime) of every spec file the scan of `kind` may read: a changed or added file rescans."""
+    stamps = []
+    for package in sorted({ep.module.split(".")[0] for ep in eps}):
+        try:
+            root = Path(str(importlib.resources.files(package) / "specs"))
+        except Exception:  # noqa: BLE001 - the scan reports a broken package itself
+            continue
+        for folder in (root / kind, root / "datasets"):
+            if folder.is_dir():
+                stamps += [(str(p), p.stat().st_mtime_ns) for p in folder.glob("*.toml")]
+    return tuple(sorted(stamps))
+
+
+_SCANS: dict[tuple, tuple[dict[str, Entry], dict[str, str]]] = {}
+
+
 def _scan(kind: Kind) -> tuple[dict[str, Entry], dict[str, str]]:
-    """(usable variants by name, unusable ones by name with the reason)."""
+    """(usable variants by name, unusable ones by name with the reason); remembered until the installed
+    entry points or a spec file change (reports ask for every stored run's variant)."""
+    eps = _entry_points(GROUPS[kind], tuple(sys.path))
+    key = (kind, eps, _spec_stamps(kind, eps))
+    if key not in _SCANS:
+        _SCANS[key] = _scan_now(kind, eps)
+    found, broken = _SCANS[key]
+    return dict(found), dict(broken)
+
+
+def _scan_now(kind: Kind, eps: tuple[EntryPoint, ...]) -> tuple[dict[str, Entry], dict[str, str]]:
     found: dict[str, Entry] = {}
     broken: dict[str, str] = {}
     families = []
-    for ep in entry_points(group=GROUPS[kind]):
+    for ep in eps:
         if ep.name.endswith(FAMILY_SUFFIX):
             families.append(ep)
             continue
