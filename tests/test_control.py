@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 
 from mftcn_bench.cli import main
@@ -27,7 +28,10 @@ def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encod
     [record] = ResultStore(control_home / "results.sqlite").query(task=task, encoder=encoder)
     metrics = record.metrics
     assert metrics["episodes"] == 2 and metrics["frames"] == 320
-    assert 0.0 <= metrics["return_mean"] <= 80.0  # smoke episodes of <= 80 steps, reward <= 1 a step
+    test_returns = np.asarray(record.curves["test"]["return"])  # every test episode's return is kept
+    assert len(test_returns) == 2 and metrics["return_mean"] == pytest.approx(test_returns.mean())
+    assert metrics["return_std"] == pytest.approx(test_returns.std(ddof=1))
+    assert all(0.0 <= r <= 80.0 for r in test_returns)  # smoke episodes of <= 80 steps, reward <= 1 a step
     curve = record.curves["train"]
     assert curve["frames"][-1] == 320.0 and sorted(curve["frames"]) == curve["frames"]
     assert len(curve["return"]) == len(curve["wall_s"]) == len(curve["frames"]) >= 2

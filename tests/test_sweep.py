@@ -1,6 +1,8 @@
 """Sweeps: grid parsing, validation before any work, a tiny sweep through the local pool and through a
 local Ray instance (identical metrics for the same seeds), and a rerun that redoes nothing."""
 
+import os
+
 import pytest
 
 from mftcn_bench.cli import main
@@ -8,6 +10,7 @@ from mftcn_bench.core.errors import SpecError
 from mftcn_bench.core.home import BenchHome
 from mftcn_bench.orchestration.sweep import SweepRequest, parse_seeds, run_sweep
 from mftcn_bench.results.store import ResultStore
+from tests.plugins import install
 
 # Rendering costs ~3 ms a frame: 3 episodes of 30 frames x 2 views; encoders without training.
 TINY = ("task.dataset.train_episodes=2", "task.dataset.test_episodes=1", "task.dataset.episode_length=30",
@@ -71,14 +74,30 @@ def test_bad_input_is_one_line_exit_2_before_any_work(tmp_path, monkeypatch, cap
     assert not (tmp_path / "home" / "datasets").exists()
 
 
+FAILING = """
+from mftcn_bench.core.errors import TrainingError
+from mftcn_bench.encoders.baselines import TrueStateEncoder
+
+
+class FailingFit(TrueStateEncoder):
+    needs_fit = True
+
+    def fit(self, dataset, budget, progress, workdir):
+        raise TrainingError("deliberate failure of this encoder's fit")
+"""
+
+
 @pytest.fixture(scope="module")
 def local_home(tmp_path_factory):
-    """A local-pool sweep (with one encoder that fails: inception has no weights here), run once."""
+    """A local-pool sweep (with one encoder whose fit fails, from a plugin), run once."""
     home = BenchHome.resolve(tmp_path_factory.mktemp("local"))
     mp = pytest.MonkeyPatch()
     mp.setenv("MFTCN_BENCH_HOME", str(home.root))
+    plugin_root = tmp_path_factory.mktemp("plugin")
+    install(mp, plugin_root, "failplug", "1.0", {"enc": FAILING}, {"failing-fit": "enc:FailingFit"})
+    mp.setenv("PYTHONPATH", os.pathsep.join([str(plugin_root), os.environ.get("PYTHONPATH", "")]))
     try:
-        code = main(sweep_args((*ENCODERS, "inception")))
+        code = main(sweep_args((*ENCODERS, "failing-fit")))
     finally:
         mp.undo()
     return home, code
@@ -87,7 +106,7 @@ def local_home(tmp_path_factory):
 @pytest.mark.slow
 def test_local_sweep_stores_every_run_and_a_failed_job_only_fails_itself(local_home, capsys):
     home, code = local_home
-    assert code == 1  # inception failed: the sweep went on, and says so in its exit code
+    assert code == 1  # failing-fit failed: the sweep went on, and says so in its exit code
     assert set(metrics_by_job(home)) == {(e, s) for e in ENCODERS for s in SEEDS}
     for record in ResultStore(home.database).query():
         assert (home.runs / record.run_id / "result.json").exists()

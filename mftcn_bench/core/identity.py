@@ -19,6 +19,7 @@ import functools
 import hashlib
 import importlib.util
 import json
+import marshal
 import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
@@ -57,7 +58,10 @@ class CodeIdentity:
 
 @functools.cache
 def _package_root(top: str) -> Path | None:
-    spec = importlib.util.find_spec(top)
+    try:
+        spec = importlib.util.find_spec(top)
+    except (ImportError, ValueError):  # `__main__` of `python -c`, a module without a spec
+        return None
     if spec is None:
         return None
     if spec.submodule_search_locations:
@@ -70,7 +74,7 @@ def _module_file(module: str) -> Path | None:
     root = _package_root(top)
     if root is None:
         return None
-    if not rest and importlib.util.find_spec(top).submodule_search_locations is None:
+    if not rest and not root.joinpath("__init__.py").is_file():
         return root / f"{top}.py"  # a single-module distribution
     base = root.joinpath(*rest)
     for candidate in (base / "__init__.py", base.with_suffix(".py")):
@@ -163,7 +167,12 @@ def code_identity(*components: object) -> CodeIdentity:
     names the distribution recorded (the plugin's, when it is one)."""
     modules = [c if isinstance(c, str) else module_of(c) for c in components]
     dist, version, editable = _distribution_of(modules[0].split(".")[0])
-    return CodeIdentity(modules[0], dist, version, source_digest(modules), editable)
+    source = source_digest(modules)
+    if modules[0] == "__main__":  # a script's own function (no file to read): its compiled code
+        code = getattr(getattr(components[0], "__func__", components[0]), "__code__", None)
+        extra = marshal.dumps(code) if code is not None else repr(components[0]).encode()
+        source = hashlib.sha256(source.encode() + extra).hexdigest()[:16]
+    return CodeIdentity(modules[0], dist, version, source, editable)
 
 
 def library_versions() -> dict[str, str | None]:

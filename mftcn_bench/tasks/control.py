@@ -111,7 +111,8 @@ class ControlTask:
         returns = evaluate_policy(make_env, nets, self.ppo.eval_episodes,
                                   min(self.ppo.num_envs, self.ppo.eval_episodes), self.seed)
         curves = {"train": {"frames": state.curve_frames, "wall_s": state.curve_wall_s,
-                            "return": state.curve_return}}
+                            "return": state.curve_return},
+                  "test": {"episode": [float(i) for i in range(len(returns))], "return": returns.tolist()}}
         # Over the test episodes, as the seeds' std: the sample std (ddof=1).
         metrics = {"return_mean": float(returns.mean()), "return_std": float(returns.std(ddof=1)),
                    "episodes": float(len(returns)), "frames": float(state.frames),
