@@ -51,10 +51,6 @@ class CodeIdentity:
         return {"module": self.module, "distribution": self.distribution, "version": self.version,
                 "source": self.source}
 
-    def label(self) -> str:
-        """`my-plugin 0.2.0 (source 1a2b3c4d)`, for reports and boards."""
-        return f"{self.distribution or self.module.split('.')[0]} {self.version or '?'} (source {self.source[:8]})"
-
 
 @functools.cache
 def _package_root(top: str) -> Path | None:

@@ -62,7 +62,7 @@ def _max_diff(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.max(np.abs(a.astype(np.float64) - b.astype(np.float64)))) if a.size else 0.0
 
 
-def _same(name: str, a: np.ndarray, b: np.ndarray, what: str) -> str:
+def _same(a: np.ndarray, b: np.ndarray, what: str) -> str:
     if a.shape != b.shape:
         raise _Failed(f"{what}: shapes {a.shape} and {b.shape} differ")
     diff, bound = _max_diff(a, b), TOLERANCE * max(1.0, float(np.max(np.abs(b), initial=0.0)))
@@ -157,7 +157,7 @@ class EncoderCheck:
             return "not provided: the harness builds every clip and calls embed"
         lines = []
         for frames, state in self._episodes():
-            lines.append(_same("embed_episode", embed_episode(self.encoder, frames, state),
+            lines.append(_same(embed_episode(self.encoder, frames, state),
                                embed_clips_of_episode(self.encoder, frames, state), "vs embed"))
         return lines[-1] + f" ({len(lines)} episodes)"
 
@@ -184,14 +184,14 @@ class EncoderCheck:
             got.append(out)
             want.append(np.stack([ref_a[t], (ref_b1 if t < half else ref_b2)[tb]]))
         how = "streaming()" if isinstance(self.encoder, StreamingEncoder) else "clip window over embed"
-        return _same("streaming", np.stack(got), np.stack(want), f"{how} vs embed, 2 environments, a restart")
+        return _same(np.stack(got), np.stack(want), f"{how} vs embed, 2 environments, a restart")
 
     def determinism(self) -> str:
         assert self.encoder is not None
         twin = self._new()
         self._fit(twin, "fit-b")
         frames, state = self._episodes()[0]
-        return _same("determinism", embed_clips_of_episode(twin, frames, state),
+        return _same(embed_clips_of_episode(twin, frames, state),
                      embed_clips_of_episode(self.encoder, frames, state), "a second fit with seed 0")
 
     def save_load(self) -> str:
@@ -203,7 +203,7 @@ class EncoderCheck:
         loaded.load(path)
         attach_feature_cache(loaded, self.dataset, self.home, show_progress=False)
         frames, state = self._episodes()[0]
-        return _same("save-load", embed_clips_of_episode(loaded, frames, state),
+        return _same(embed_clips_of_episode(loaded, frames, state),
                      embed_clips_of_episode(self.encoder, frames, state), "loaded vs saved")
 
     def run(self) -> Iterator[CheckLine]:
