@@ -1,9 +1,10 @@
 """The paper's reference rows: random state (lower bound), true state (upper bound), raw pixels via a CNN.
 
 - `RandomStateEncoder` (`random-state`): Gaussian noise of the state's size. Each clip's noise comes from
-  a numpy Generator seeded by (seed, a hash of the clip's last simulator state), so a clip always gets
-  the same noise, whatever the batch it is in, the order of the batches or whether it is embedded in a
-  batch or in a rollout (which renders nothing for it): results are reproducible.
+  a numpy Generator seeded by (seed, a hash of the clip's pixel bytes), so a clip always gets the same
+  noise, whatever the batch it is in, the order of the batches or whether it is embedded in a batch or in
+  a rollout (its stream keeps the clip's frames): results are reproducible. Two cameras' views of one
+  moment get unrelated noise (a hash of the shared state would make them align perfectly).
 - `TrueStateEncoder` (`true-state`): the simulator state of the clip's last frame. A 4-column cartpole
   state (x, theta, x_dot, theta_dot) is mapped like the probe's targets, to (x, sin theta, cos theta,
   x_dot, theta_dot); any other state is returned as it is.
@@ -27,6 +28,7 @@ from torch import nn
 from mftcn_bench.core.errors import BenchError, SpecError
 from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.cartpole import state_targets
+from mftcn_bench.data.clips import ClipRing
 from mftcn_bench.encoders.base import ClipBatch
 from mftcn_bench.encoders.bases import SmallCNN
 from mftcn_bench.encoders.common import FrameHeadEncoder, SpecEncoder, load_payload, parse_table, save_payload
@@ -54,31 +56,31 @@ class RandomStateModelConfig:
             raise SpecError(f"random-state [model]: std must be > 0, got {self.std}")
 
 
-def state_noise(state: np.ndarray, seed: int, dim: int, std: float) -> np.ndarray:
-    """float32 [dim] Gaussian noise that depends only on (seed, the bytes of one float64 state [S])."""
-    data = np.ascontiguousarray(state, dtype=np.float64).tobytes()
-    digest = hashlib.blake2b(data, digest_size=8).digest()
+def clip_noise(clip: np.ndarray, seed: int, dim: int, std: float) -> np.ndarray:
+    """float32 [dim] Gaussian noise that depends only on (seed, the clip's pixel bytes). Pixels, not the
+    state: two cameras' views of one moment get unrelated noise (state-seeded noise would align them)."""
+    digest = hashlib.blake2b(np.ascontiguousarray(clip).tobytes(), digest_size=8).digest()
     rng = np.random.default_rng([seed, int.from_bytes(digest, "little")])
     return (rng.standard_normal(dim) * std).astype(np.float32)
 
 
 class RandomStateStream:
-    """The noise of each environment's current state (as `embed` gives the clip ending there)."""
+    """The noise of the clip ending at each environment's newest frame, exactly as `embed` draws it."""
 
-    def __init__(self, seed: int, dim: int, std: float) -> None:
+    def __init__(self, seed: int, frames: int, stride: int, num_envs: int, dim: int, std: float) -> None:
         self.seed, self.dim, self.std = seed, dim, std
-
-    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
-        return np.stack([state_noise(s, self.seed, self.dim, self.std) for s in np.asarray(state)])
+        self._clips = ClipRing(frames, stride, num_envs)
 
     def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None:
-        """The noise has no history."""
+        self._clips.push(np.asarray(frames), episode_start)
+
+    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+        self.observe(frames, episode_start, state)
+        return np.stack([clip_noise(clip, self.seed, self.dim, self.std) for clip in self._clips.clip()])
 
 
 class RandomStateEncoder(SpecEncoder):
     """Noise of a fixed size: the lower bound (a policy or probe that sees nothing of the state)."""
-
-    uses_pixels = False  # in a rollout (`streaming`) the noise needs no rendered frame
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         super().__init__(spec, image_shape, seed)
@@ -87,13 +89,13 @@ class RandomStateEncoder(SpecEncoder):
 
     def embed(self, clips: ClipBatch) -> np.ndarray:
         dim, std = self.spec.embedding_dim, self.model_config.std
-        if clips.state is None:
-            raise BenchError(f"encoder {self.spec.name!r} needs the clips' simulator state; this dataset has none")
-        out = [state_noise(clip[-1], self.seed, dim, std) for clip in clips.state]
+        out = [clip_noise(clip, self.seed, dim, std) for clip in clips.frames]
         return np.stack(out) if out else np.zeros((0, dim), np.float32)
 
     def streaming(self, num_envs: int) -> RandomStateStream:
-        return RandomStateStream(self.seed, self.spec.embedding_dim, self.model_config.std)
+        """Noise for rollouts: the same function of each clip's pixels as `embed` (rollouts render for it)."""
+        return RandomStateStream(self.seed, self.spec.frames, self.spec.stride, num_envs, self.spec.embedding_dim,
+                                 self.model_config.std)
 
     def save(self, path: Path) -> None:
         save_payload(path, {"seed": self.seed, "embedding_dim": self.spec.embedding_dim})
