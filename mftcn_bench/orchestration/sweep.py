@@ -23,7 +23,7 @@ from mftcn_bench.data.dataset import MultiViewDataset, dataset_id
 from mftcn_bench.orchestration.executors import Executor, check_executor_args, make_executor
 from mftcn_bench.orchestration.jobs import JobKind, JobResult, JobSpec
 from mftcn_bench.results.store import ResultStore, RunRecord
-from mftcn_bench.run.runner import PreparedRun, RunRequest, construct_encoder, encoder_key_of, prepare, run_id_of
+from mftcn_bench.run.runner import PreparedRun, RunRequest, encoder_key_of, prepare, run_id_of
 
 
 class SweepFailed(BenchError):
@@ -88,16 +88,6 @@ def _local_fingerprint(prepared: PreparedRun, home: BenchHome) -> str | None:
     config = prepared.task.dataset_config
     root = home.datasets / f"{config['name']}-{dataset_id(config, prepared.task.collector)}"
     return MultiViewDataset(root).fingerprint if (root / "manifest.json").exists() else None
-
-
-def _needs_fit(prepared: PreparedRun) -> bool:
-    """Whether the encoder trains: asked of an untrained instance (construction does no training)."""
-    config = prepared.task.dataset_config
-    try:
-        return construct_encoder(prepared.encoder_entry, prepared.config["encoder"], prepared.request.seed,
-                                 (int(config["height"]), int(config["width"]))).needs_fit
-    except (BenchError, KeyError):
-        return True  # the fit job reports the failure
 
 
 class Sweep:
@@ -193,7 +183,7 @@ class Sweep:
         # 3. trained encoders: one job per distinct checkpoint (encoders that train nothing need none)
         by_encoder: dict[str, list[int]] = {}
         for i in todo:
-            if not _needs_fit(self.prepared[i]):
+            if not self.prepared[i].needs_fit:
                 continue
             by_encoder.setdefault(encoder_key_of(self.prepared[i], fingerprints[i]), []).append(i)
         for key, result in self._phase(executor, "encoder", by_encoder).items():

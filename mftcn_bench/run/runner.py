@@ -66,6 +66,7 @@ class PreparedRun:
     encoder_entry: registry.Entry
     task: Task
     code: identity.RunCode
+    needs_fit: bool = True  # asked of the untrained encoder built in `prepare` (True when none was built)
 
 
 def run_id_of(prepared: PreparedRun, dataset_fingerprint: str) -> str:
@@ -95,16 +96,18 @@ def prepare(request: RunRequest) -> PreparedRun:
         raise BenchError(f"task {request.task!r} ({task_entry.entry_point.value}) does not implement the Task "
                          f"protocol (dataset_config, collector, evaluate, table)")
     dataset_config = task.dataset_config
+    needs_fit = True
     if isinstance(dataset_config, Mapping):  # sizes that cannot work are refused before collecting anything
         check_dataset_config(dataset_config)
-        _check_views(encoder_entry, config["encoder"], request.seed, dataset_config)
+        needs_fit = _check_views(encoder_entry, config["encoder"], request.seed, dataset_config)
         length = dataset_config.get("episode_length")
         if isinstance(length, int) and spec.lookback > length:
             raise SpecError(f"encoder {spec.name!r} has a lookback of {spec.lookback} frames ({spec.frames} at "
                             f"stride {spec.stride}), longer than the task's {length}-frame episodes; use an "
                             f"encoder with lookback <= {length} or set task.dataset.episode_length >= "
                             f"{spec.lookback}")
-    return PreparedRun(request, preset, config, encoder_entry, task, identity.run_code(encoder_class, task))
+    return PreparedRun(request, preset, config, encoder_entry, task, identity.run_code(encoder_class, task),
+                       needs_fit)
 
 
 def prepare_dataset(prepared: PreparedRun, home: BenchHome, show_progress: bool = True) -> MultiViewDataset:
@@ -166,18 +169,19 @@ def construct_encoder(entry: registry.Entry, encoder_config: Mapping[str, Any], 
 
 
 def _check_views(entry: registry.Entry, encoder_config: Mapping[str, Any], seed: int,
-                 dataset_config: Mapping[str, Any]) -> None:
+                 dataset_config: Mapping[str, Any]) -> bool:
     """Refuse, before any data is collected, an encoder that trains on more camera views than the task's
-    dataset has (constructing it also refuses a model table it cannot build)."""
+    dataset has (constructing it also refuses a model table it cannot build); returns its `needs_fit`."""
     cameras = list(dataset_config.get("cameras", ()))
     shape = (dataset_config.get("height"), dataset_config.get("width"))
     if not all(isinstance(x, int) for x in shape):
-        return
+        return True
     encoder = construct_encoder(entry, encoder_config, seed, shape)
     if isinstance(encoder, MultiViewTrainer) and encoder.training_views > len(cameras):
         raise SpecError(f"encoder {entry.name!r} trains on {encoder.training_views} camera views of each "
                         f"moment; the task's dataset has {len(cameras)} ({', '.join(cameras) or 'none'}): give "
                         f"task.dataset.cameras at least {encoder.training_views} cameras")
+    return bool(encoder.needs_fit)
 
 
 def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
