@@ -3,10 +3,13 @@ import pytest
 import torch
 
 from mftcn_bench.core.errors import DataError, SpecError
+from mftcn_bench.core.registry import get
 from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.dataset import ensure_dataset
 from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
-from mftcn_bench.encoders.base import ClipBatch, FitBudget
+from mftcn_bench.encoders.base import ClipBatch, FeatureCacheUser, FitBudget
+from mftcn_bench.encoders.bases import FrozenBase
+from mftcn_bench.encoders.feature_cache import ensure_feature_cache
 from mftcn_bench.encoders.shuffle_and_learn import (
     ShuffleAndLearnEncoder,
     order_tuples,
@@ -15,16 +18,18 @@ from mftcn_bench.encoders.shuffle_and_learn import (
 )
 from mftcn_bench.encoders.training import EpisodePool
 
-MODEL = {"channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "coords": True, "mlp_hidden": 16}
+SMALL = {"name": "small-cnn", "channels": [8, 8], "kernels": [3, 3], "strides": [2, 2], "coords": True}
+LITE0 = {"name": "efficientnet-lite0", "layer": 4}  # a shallow cut keeps the tests fast
 TRAIN = {"steps": 6, "batch_size": 8, "lr": 3e-3, "weight_decay": 0.0, "camera_index": 0, "episode_pool": 3,
          "pool_refresh_steps": 0, "checkpoint_every": 2, "max_seconds": 0.0, "min_spacing": 1,
          "max_spacing": 6}
 
 
-def make(seed=0, frames=1, dim=8, **train):
-    spec = EncoderSpec("shuffle-and-learn", "shuffle-and-learn", "test", frames, 1, dim, MODEL,
+def make(seed=0, frames=1, dim=8, base=None, adapter=0, shape=(8, 12), **train):
+    model = {"base": dict(base or SMALL), "adapter_channels": adapter, "mlp_hidden": 16}
+    spec = EncoderSpec("shuffle-and-learn", "shuffle-and-learn", "test", frames, 1, dim, model,
                        {**TRAIN, **train})
-    return ShuffleAndLearnEncoder(spec, image_shape=(8, 12), seed=seed)
+    return ShuffleAndLearnEncoder(spec, image_shape=shape, seed=seed)
 
 
 def test_five_frames_are_ordered_with_gaps_in_range():
@@ -73,7 +78,7 @@ def test_embedding_is_the_trunk_on_the_last_frame(tmp_path):
     assert out.shape == (5, 8) and out.dtype == np.float32
     assert np.allclose(encoder.embed(ClipBatch(frames[:, None])), out, atol=1e-5)
     with torch.no_grad():
-        trunk = encoder.net.trunk(torch.from_numpy(frames).permute(0, 3, 1, 2)).numpy()
+        trunk = encoder.net(torch.from_numpy(frames).permute(0, 3, 1, 2)[:, None]).numpy()
     assert np.allclose(out, trunk, atol=1e-5)
     encoder.save(tmp_path / "m.pt")
     other = make(seed=1)
@@ -89,6 +94,15 @@ def test_spec_checks():
         make(min_spacing=4, max_spacing=2)
     with pytest.raises(SpecError, match="unknown key.*'spacing'"):
         make(spacing=3)
+    with pytest.raises(SpecError, match="adapter_channels must be >= 0"):
+        make(adapter=-1)
+
+
+def test_the_default_spec_sits_on_the_frozen_base_and_declares_its_cache():
+    entry = get("encoders", "shuffle-and-learn")
+    encoder = entry.load()(entry.spec, image_shape=(48, 96), seed=0)
+    assert isinstance(encoder, FeatureCacheUser) and isinstance(encoder.frozen_base(), FrozenBase)
+    assert make().frozen_base() is None  # small-cnn trains end to end: nothing to cache
 
 
 def ramp_collector(config, index):
@@ -107,3 +121,31 @@ def test_training_lowers_the_order_loss(tmp_path):
                                      tmp_path / "w")
     assert np.mean(losses[:10]) > 0.68  # chance: log 2
     assert np.mean(losses[-10:]) < 0.5
+
+
+def noisy_ramp_collector(config, index):
+    """The ramp with pixel noise, so that a base's features vary within a frame."""
+    arrays = ramp_collector(config, index)
+    noise = np.random.default_rng(index).integers(0, 40, arrays["frames"].shape, dtype=np.uint8)
+    arrays["frames"] = arrays["frames"] // 2 + noise
+    return arrays
+
+
+def test_training_on_the_cache_equals_training_on_frames_and_streams_as_it_embeds(tmp_path):
+    config = synthetic_config(height=16, width=24, episode_length=40)
+    data = ensure_dataset(tmp_path / "d", config, noisy_ramp_collector, show_progress=False)
+    on_frames, on_cache = (make(base=LITE0, adapter=8, shape=(16, 24), lr=1e-3) for _ in range(2))
+    base = on_cache.frozen_base()
+    on_cache.use_feature_cache(ensure_feature_cache(tmp_path / "f", data, base, base.identity(),
+                                                    show_progress=False))
+    losses_frames, losses_cache = [], []
+    on_frames.fit(data, FitBudget(4), lambda s, t, st: losses_frames.append(st["loss"]), tmp_path / "w1")
+    on_cache.fit(data, FitBudget(4), lambda s, t, st: losses_cache.append(st["loss"]), tmp_path / "w2")
+    assert np.allclose(losses_frames, losses_cache, atol=1e-5)
+    frames = data.load(data.episodes("test")[0]).frames[0]
+    cached = on_cache.embed_episode(frames)
+    assert np.allclose(on_frames.embed_episode(frames), cached, atol=1e-4)  # the base batched differently
+    assert not any(p.requires_grad for p in base.parameters())
+    stream = on_cache.streaming(1)
+    for t in range(len(frames)):
+        assert np.allclose(stream.push(frames[t:t + 1], np.array([t == 0]))[0], cached[t], atol=1e-5)

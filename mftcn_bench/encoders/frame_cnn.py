@@ -1,4 +1,4 @@
-"""Frame-CNN pieces shared by the single-frame encoders (pixels-cnn, PVE, Shuffle and Learn).
+"""Frame-CNN pieces shared by the single-frame encoders (pixels-cnn, PVE).
 
 - `CNNConfig`: the convolution part of a `[model]` table (the mfTCN base CNN's layers).
 - `FrameNet`: the from-scratch base CNN (`bases.SmallCNN`, with its optional coordinate channels), a spatial average
@@ -22,7 +22,7 @@ from mftcn_bench.core.errors import SpecError
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
 from mftcn_bench.encoders.bases import BaseConfig, SmallCNN
-from mftcn_bench.encoders.training import BatchLoss, run_training
+from mftcn_bench.encoders.training import BatchLoss, EpisodeLoader, run_training
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -87,8 +87,9 @@ class SingleViewTrainConfig:
 
 def train_single_view(net: nn.Module, dataset: MultiViewDataset, config: SingleViewTrainConfig,
                       budget: FitBudget, progress: ProgressFn, workdir: Path, *, seed: int, min_length: int,
-                      batch_loss: BatchLoss) -> dict[str, float]:
-    """Adam on `batch_loss` for `budget.steps` steps; returns {'final_loss', 'steps', 'seconds'}.
+                      batch_loss: BatchLoss, load: EpisodeLoader | None = None) -> dict[str, float]:
+    """Adam on `batch_loss` for `budget.steps` steps; returns {'final_loss', 'steps', 'seconds'}. The pool
+    holds decoded episodes, or what `load` gives per episode (cached base features).
 
     Checkpoints (model, optimizer, step, pool members, random states) go to
     `workdir/train_checkpoint.pt` every `checkpoint_every` steps, and training resumes from there.
@@ -100,4 +101,5 @@ def train_single_view(net: nn.Module, dataset: MultiViewDataset, config: SingleV
     if shortest < min_length:
         raise SpecError(f"this encoder's training samples need episodes of at least {min_length} frames; the "
                         f"shortest train episode has {shortest}")
-    return run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss)
+    return run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss,
+                        load=load)

@@ -141,6 +141,10 @@ class OnBaseEncoder(FrameHeadEncoder):
         """Read base features from `cache` (built by the runner for this encoder's frozen base and dataset)."""
         self.feature_cache = cache
 
+    def training_features(self) -> FeatureCache | None:
+        """The feature cache the head trains on (None: train from frames)."""
+        return self.feature_cache if self.frozen_base() is not None else None
+
     @torch.no_grad()
     def embed_episode(self, frames: np.ndarray, state: np.ndarray | None = None,
                       batch_size: int = 256) -> np.ndarray:
@@ -182,10 +186,6 @@ class MfTCNEncoder(OnBaseEncoder):
         return train_multiview(self.net, dataset, self.train_config, budget, progress, workdir,
                                frames=self.spec.frames, stride=self.spec.stride, seed=self.seed,
                                features=self.training_features())
-
-    def training_features(self) -> FeatureCache | None:
-        """The feature cache the head trains on (None: train from frames)."""
-        return self.feature_cache if self.frozen_base() is not None else None
 
     def streaming(self, num_envs: int) -> StreamingEmbedder:
         """A streaming embedder over `num_envs` environments: one base and adapter pass per new frame,

@@ -1,21 +1,26 @@
-"""Shuffle and Learn (Misra et al. 2016): a siamese CNN learns whether three frames are in temporal order.
+"""Shuffle and Learn (Misra et al. 2016): a siamese network learns whether three frames are in temporal order.
 
-The trunk (the mfTCN base CNN, spatial average, linear layer to `embedding_dim`) is applied to each of
-three frames; the three outputs are concatenated and a small MLP (one hidden ReLU layer of
-`model.mlp_hidden`) gives one logit for "in temporal order". The embedding of a clip is the trunk's
-output on its last frame (spec frames = 1).
+The trunk is an `OnBaseNet` on the same base as mfTCN and TCN (`[model.base]`, by default the frozen
+ImageNet EfficientNet-Lite0, so training reads the per-frame feature cache): a per-frame adapter (3x3
+convolution, BatchNorm, ReLU; `adapter_channels`), a spatial average and a linear layer to
+`embedding_dim`. It is applied to each of three frames; the three outputs are concatenated and a small
+MLP (one hidden ReLU layer of `mlp_hidden`) gives one logit for "in temporal order". The embedding of a
+clip is the trunk's output on its last frame (spec frames = 1). `base.name = "small-cnn"` trains the
+earlier from-scratch trunk end to end (its order classifier stayed at chance on cartpole: loss log 2).
 
 Training uses one view (`train.camera_index`) of the train split. For each of `train.batch_size` draws,
 five frames a < b < c < d < e of one episode are sampled, every gap between neighbours uniform in
 [`min_spacing`, `max_spacing`] (capped so the five fit in the episode); the draw gives one positive,
 (b, c, d), and one negative, (b, a, d) or (b, e, d) with equal chance, so batches are balanced. Loss:
-binary cross-entropy on the logits; Adam.
+binary cross-entropy on the logits; Adam. The classifier is a training device: it is not checkpointed
+with the trunk and takes no part in embedding.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -24,22 +29,32 @@ from torch import nn
 from mftcn_bench.core.errors import DataError, SpecError
 from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.encoders.base import ClipBatch, FitBudget, ProgressFn
-from mftcn_bench.encoders.common import SpecEncoder, check_image_shape, map_batches, parse_table, to_images
-from mftcn_bench.encoders.frame_cnn import CNNConfig, FrameNet, SingleViewTrainConfig, train_single_view
-from mftcn_bench.encoders.training import EpisodePool
+from mftcn_bench.encoders.base import FitBudget, ProgressFn
+from mftcn_bench.encoders.bases import BaseConfig, base_channels, build_base
+from mftcn_bench.encoders.common import check_image_shape, parse_table, to_images
+from mftcn_bench.encoders.frame_cnn import SingleViewTrainConfig, train_single_view
+from mftcn_bench.encoders.mftcn import OnBaseEncoder, OnBaseNet, frame_adapter, parse_base
+from mftcn_bench.encoders.streaming import StreamingEmbedder
+from mftcn_bench.encoders.training import EpisodePool, views_of
 
 
-@dataclass(frozen=True, kw_only=True)
-class ShuffleModelConfig(CNNConfig):
-    """The `[model]` table: the trunk's CNN and the order classifier's hidden width."""
+@dataclass(frozen=True)
+class ShuffleModelConfig:
+    """The `[model]` table: the trunk's base and adapter, and the order classifier's hidden width."""
 
+    base: BaseConfig
+    adapter_channels: int
     mlp_hidden: int
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.mlp_hidden < 1:
-            raise SpecError(f"shuffle-and-learn [model]: mlp_hidden must be >= 1, got {self.mlp_hidden}")
+    @classmethod
+    def from_table(cls, encoder: str, table: dict[str, Any]) -> ShuffleModelConfig:
+        table = dict(table)
+        base = parse_base(encoder, table.pop("base", {}))
+        config = parse_table(cls, encoder, "model", {**table, "base": base})
+        if config.adapter_channels < 0 or config.mlp_hidden < 1:
+            raise SpecError(f"encoder {encoder!r}: [model] adapter_channels must be >= 0 and mlp_hidden >= 1, "
+                            f"got {config.adapter_channels} and {config.mlp_hidden}")
+        return config
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -80,58 +95,66 @@ def order_tuples(five: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray
 
 def sample_order_batch(pool: EpisodePool, rng: np.random.Generator, count: int, camera: int, min_spacing: int,
                        max_spacing: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """`count` draws from episodes of the pool: (frames uint8 [2 count, 3, H, W, 3], labels [2 count],
-    episode of each triplet [2 count], frame indices [2 count, 3])."""
+    """`count` draws from episodes of the pool: (per-frame items [2 count, 3, ...] — uint8 frames
+    [H, W, 3] or cached base features [C, h, w] — labels [2 count], episode of each triplet [2 count],
+    frame indices [2 count, 3])."""
     picked = rng.choice(sorted(pool.episodes), size=count)
-    five = np.stack([sample_five(rng, pool.episodes[int(e)].length, min_spacing, max_spacing) for e in picked])
+    five = np.stack([sample_five(rng, pool.length(int(e)), min_spacing, max_spacing) for e in picked])
     times, labels = order_tuples(five, rng)
     episodes = np.concatenate([picked, picked])
-    frames = np.stack([pool.episodes[int(e)].frames[camera, t] for e, t in zip(episodes, times, strict=True)])
-    return frames, labels, episodes, times
+    items = np.stack([views_of(pool.episodes[int(e)])[camera, t] for e, t in zip(episodes, times, strict=True)])
+    return items, labels, episodes, times
 
 
-class ShuffleNet(nn.Module):
-    """A shared trunk on three frames and an MLP on the concatenated features: uint8 [N, 3, 3, H, W] ->
-    order logits [N]."""
+class ShuffleTrunk(OnBaseNet):
+    """One-frame clip [B, 1, 3, H, W] (uint8) -> embedding [B, D]: base, adapter, spatial mean, linear."""
 
     def __init__(self, config: ShuffleModelConfig, embedding_dim: int) -> None:
         super().__init__()
-        self.trunk = FrameNet(config, embedding_dim)
-        self.classifier = nn.Sequential(nn.Linear(3 * embedding_dim, config.mlp_hidden), nn.ReLU(),
-                                        nn.Linear(config.mlp_hidden, 1))
+        self.base = build_base(config.base)
+        channels = base_channels(self.base)
+        self.adapter = frame_adapter(channels, [config.adapter_channels] if config.adapter_channels else [])
+        self.fc = nn.Linear(config.adapter_channels or channels, embedding_dim)
 
-    def forward(self, triplets: torch.Tensor) -> torch.Tensor:
-        n = triplets.shape[0]
-        features = self.trunk(triplets.reshape(n * 3, *triplets.shape[2:])).reshape(n, -1)
-        return self.classifier(features).squeeze(-1)
+    def head(self, features: torch.Tensor) -> torch.Tensor:
+        return self.fc(features[:, -1].mean(dim=(2, 3)))
 
 
-class ShuffleAndLearnEncoder(SpecEncoder):
+def order_classifier(embedding_dim: int, hidden: int) -> nn.Module:
+    """Concatenated trunk outputs of a triplet [N, 3 D] -> order logit [N, 1]."""
+    return nn.Sequential(nn.Linear(3 * embedding_dim, hidden), nn.ReLU(), nn.Linear(hidden, 1))
+
+
+class ShuffleAndLearnEncoder(OnBaseEncoder):
     """Temporal-order verification; the trunk's output on the clip's frame is the embedding."""
 
     needs_fit = True
+    net: ShuffleTrunk
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         if spec.frames != 1:
             raise SpecError(f"encoder {spec.name!r}: Shuffle and Learn embeds one frame (frames = 1), "
                             f"got frames = {spec.frames}")
         super().__init__(spec, image_shape, seed)
-        self.model_config = parse_table(ShuffleModelConfig, spec.name, "model", spec.model)
+        self.model_config = ShuffleModelConfig.from_table(spec.name, dict(spec.model))
         self.train_config = parse_table(ShuffleTrainConfig, spec.name, "train", spec.train)
         torch.manual_seed(seed)
-        self.net = ShuffleNet(self.model_config, spec.embedding_dim).eval()
+        self.net = ShuffleTrunk(self.model_config, spec.embedding_dim).eval()
+        self.classifier = order_classifier(spec.embedding_dim, self.model_config.mlp_hidden)
         self.loss_fn = nn.BCEWithLogitsLoss()
-
-    def counted_module(self) -> nn.Module:
-        """Only the trunk embeds; the order classifier is a training device."""
-        return self.net.trunk
 
     def batch_loss(self, pool: EpisodePool, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         """BCE of the order classifier on one balanced batch, and its accuracy."""
         config = self.train_config
-        frames, labels, _, _ = sample_order_batch(pool, rng, config.batch_size, config.camera_index,
-                                                  config.min_spacing, config.max_spacing)
-        logits = self.net(to_images(frames))
+        items, labels, _, _ = sample_order_batch(pool, rng, config.batch_size, config.camera_index,
+                                                 config.min_spacing, config.max_spacing)
+        count = items.shape[0]
+        single = items.reshape(count * 3, 1, *items.shape[2:])
+        if self.training_features() is None:
+            trunk = self.net(to_images(single))
+        else:
+            trunk = self.net.head_on_base(torch.from_numpy(np.ascontiguousarray(single)))
+        logits = self.classifier(trunk.reshape(count, -1)).squeeze(-1)
         target = torch.from_numpy(labels)
         accuracy = float(((logits.detach() > 0).float() == target).float().mean())
         return self.loss_fn(logits, target), {"accuracy": accuracy}
@@ -140,15 +163,12 @@ class ShuffleAndLearnEncoder(SpecEncoder):
             workdir: Path) -> dict[str, float]:
         check_image_shape(self.image_shape, dataset)
         min_length = 4 * self.train_config.min_spacing + 1
-        return train_single_view(self.net, dataset, self.train_config, budget, progress, workdir,
-                                 seed=self.seed, min_length=min_length, batch_loss=self.batch_loss)
+        cache = self.training_features()
+        trained = nn.ModuleDict({"trunk": self.net, "classifier": self.classifier})
+        return train_single_view(trained, dataset, self.train_config, budget, progress, workdir,
+                                 seed=self.seed, min_length=min_length, batch_loss=self.batch_loss,
+                                 load=None if cache is None else cache.load)
 
-    @torch.no_grad()
-    def embed(self, clips: ClipBatch) -> np.ndarray:
-        return self.net.trunk(to_images(clips.frames[:, -1])).numpy().astype(np.float32, copy=False)
-
-    @torch.no_grad()
-    def embed_episode(self, frames: np.ndarray, state: np.ndarray | None = None,
-                      batch_size: int = 256) -> np.ndarray:
-        """The trunk's output for every frame of one view [T, H, W, 3]."""
-        return map_batches(self.net.trunk, to_images(frames), batch_size).numpy().astype(np.float32, copy=False)
+    def streaming(self, num_envs: int) -> StreamingEmbedder:
+        """One base and adapter pass per new frame, then the trunk's head."""
+        return StreamingEmbedder(self.net, 1, 1, num_envs)
