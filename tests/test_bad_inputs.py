@@ -275,6 +275,33 @@ def test_bad_name_preset_or_override(capsys, tmp_path, case):
     check_case(capsys, tmp_path, argv, *needles)
 
 
+DEVICE_CASES = {
+    "unknown device": (["run", *TINY_TASK, "--device", "tpu"], ["unknown device 'tpu'", "allowed: auto, cpu, cuda"]),
+    "cuda without a GPU": (["run", *TINY_TASK, "--device", "cuda"],
+                           ["--device cuda", "sees no CUDA GPU", "use --device cpu or auto"]),
+    "cuda:N without a GPU": (["run", *TINY_TASK, "--device", "cuda:1"], ["--device cuda:1", "sees no CUDA GPU"]),
+    "sweep on cuda without a GPU": (["sweep", "--encoders", "mftcn1", "--tasks", "cartpole-probe", "--device",
+                                     "cuda"], ["--device cuda", "sees no CUDA GPU"]),
+    "bench on an unknown device": (["bench", "--quick", "--only", "device", "--device", "gpu0"],
+                                   ["unknown device 'gpu0'"]),
+}
+
+
+@pytest.mark.parametrize("case", list(DEVICE_CASES))
+def test_bad_device(capsys, tmp_path, monkeypatch, case):
+    """Refused before any work, also on a machine that has a GPU (torch is told it has none)."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    argv, needles = DEVICE_CASES[case]
+    if argv[0] == "sweep":
+        argv = [*argv, "--home", str(tmp_path / "home")]
+    check_case(capsys, tmp_path, argv, *needles)
+
+
+def test_bad_device_from_the_environment(capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv("MFTCN_BENCH_DEVICE", "cuda:x")
+    check_case(capsys, tmp_path, ["run", *TINY_TASK], "unknown device 'cuda:x'")
+
+
 def test_results_folder_that_is_a_file(capsys, tmp_path):
     home = tmp_path / "file"
     home.write_text("not a folder")

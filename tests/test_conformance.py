@@ -62,7 +62,7 @@ def test_builtins_keep_the_contract(capsys, name):
     assert code == 0, lines
     checks = {line.split()[1]: line.split()[0] for line in lines if line[:4] in ("ok  ", "FAIL", "skip")}
     assert set(checks) == {"spec", "construct", "metadata", "fit", "embed", "embed_episode", "streaming",
-                           "determinism", "save-load"} and set(checks.values()) == {"ok"}
+                           "determinism", "save-load", "device"} and set(checks.values()) == {"ok"}
 
 
 @pytest.mark.slow

@@ -17,6 +17,8 @@ from typing import Any, NoReturn
 
 from tabulate import tabulate
 
+from mftcn_bench.core.device import CHOICES, requested_device
+from mftcn_bench.core.device import ENV_VAR as DEVICE_ENV_VAR
 from mftcn_bench.core.errors import BenchError, SpecError
 from mftcn_bench.core.home import ENV_VAR, BenchHome
 from mftcn_bench.core.specs import parse_override
@@ -55,6 +57,14 @@ def _seed(text: str) -> int:
     return value
 
 
+def add_device_options(parser: argparse.ArgumentParser) -> None:
+    """--device and --deterministic (run, sweep, bench)."""
+    parser.add_argument("--device", help=f"where networks compute: {CHOICES} (default ${DEVICE_ENV_VAR} or "
+                                         "auto: CUDA when torch sees a GPU)")
+    parser.add_argument("--deterministic", action="store_true",
+                        help="torch's deterministic algorithms (slower on a GPU; see README, determinism)")
+
+
 def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--home", help=f"folder for datasets, encoders and results (default ${ENV_VAR} "
                                        "or ~/.mftcn-bench)")
@@ -73,6 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a spec value, e.g. encoder.embedding_dim=8 (repeatable)")
     run.add_argument("--force", action="store_true", help="recompute even if a stored result exists")
+    add_device_options(run)
     _common(run)
 
     listing = commands.add_parser("list", help="list registered encoders or tasks")
@@ -103,12 +114,14 @@ def build_parser() -> argparse.ArgumentParser:
     check_encoder.add_argument("name", help="encoder name (built-in or plugin), e.g. mftcn4")
     check_encoder.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                                help="override a spec value (repeatable)")
+    check_encoder.add_argument("--device", default="cpu", help=f"the device check's device: {CHOICES} "
+                                                               "(default cpu)")
     check_encoder.add_argument("--keep", metavar="DIR", help="work in DIR and keep it (default: a temporary "
                                                               "folder)")
 
     from mftcn_bench.cli.results_commands import add_commands
 
-    add_commands(commands, _common, _Parser)  # sweep, report, leaderboard, results, plot
+    add_commands(commands, _common, _Parser, add_device_options)  # sweep, report, leaderboard, results, plot
 
     from mftcn_bench.perf.bench import add_command as add_bench
 
@@ -120,7 +133,8 @@ def cmd_run(args: argparse.Namespace) -> None:
     from mftcn_bench.run.runner import RunRequest, run
 
     request = RunRequest(args.encoder, args.task, args.preset, args.seed,
-                         tuple(parse_override(o) for o in args.overrides), args.force)
+                         tuple(parse_override(o) for o in args.overrides), args.force,
+                         requested_device(args.device), args.deterministic)
     outcome = run(request, BenchHome.resolve(args.home), show_progress=not args.no_progress)
     record = outcome.record
     how = "reused stored result" if outcome.reused else f"finished in {record.timings['total_s']:.1f} s"
@@ -138,7 +152,7 @@ def cmd_check(args: argparse.Namespace) -> None:
     registry.get("encoders", args.name)  # an unknown name is the usual one-line error
     failed = 0
     for line in check_encoder(args.name, tuple(parse_override(o) for o in args.overrides),
-                              Path(args.keep) if args.keep else None):
+                              Path(args.keep) if args.keep else None, args.device):
         print(line, flush=True)
         failed += line.status == "FAIL"
     if failed:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from tabulate import tabulate
 
+from mftcn_bench.core.device import requested_device
 from mftcn_bench.core.errors import BenchError, SpecError
 from mftcn_bench.core.fileio import atomic_write_bytes
 from mftcn_bench.core.home import BenchHome
@@ -27,7 +28,8 @@ def _store(args: argparse.Namespace):
 
 
 def add_commands(commands: argparse._SubParsersAction, common: Callable[[argparse.ArgumentParser], None],
-                 parser_class: type[argparse.ArgumentParser]) -> None:
+                 parser_class: type[argparse.ArgumentParser],
+                 device_options: Callable[[argparse.ArgumentParser], None]) -> None:
     """Add sweep, report, leaderboard, results and plot to `commands`."""
     sweep = commands.add_parser("sweep", help="run a grid of encoders x tasks x seeds (local pool or Ray)")
     sweep.add_argument("--encoders", required=True, help="comma-separated encoder names, e.g. mftcn1,mftcn5,pve")
@@ -42,6 +44,7 @@ def add_commands(commands: argparse._SubParsersAction, common: Callable[[argpars
     sweep.add_argument("--workers", type=int, default=2, help="jobs at once (local processes, or CPUs of a "
                                                               "local Ray instance; default 2)")
     sweep.add_argument("--threads", type=int, default=1, help="torch/BLAS threads per job (default 1)")
+    device_options(sweep)
     common(sweep)
     sweep.set_defaults(handler=cmd_sweep)
 
@@ -96,7 +99,8 @@ def cmd_sweep(args: argparse.Namespace) -> None:
 
     request = SweepRequest(parse_names(args.encoders, "encoders"), parse_names(args.tasks, "tasks"),
                            parse_seeds(args.seeds), args.preset, tuple(parse_override(o) for o in args.overrides),
-                           args.executor, args.address, args.workers, args.threads)
+                           args.executor, args.address, args.workers, args.threads,
+                           requested_device(args.device), args.deterministic)
     jobs = run_sweep(request, BenchHome.resolve(args.home), echo=lambda line: print(line, flush=True))
     metrics = {task: (r.metric if (r := ranking(task)) else None) for task in request.tasks}
     rows = summary_rows(jobs, metrics.get)

@@ -182,26 +182,33 @@ def _key(kind: str, inputs: Mapping[str, Any], code: CodeIdentity) -> str:
                          "libraries": library_versions()})
 
 
-def dataset_id(config: Mapping[str, Any], collector: object, format_version: int) -> str:
-    """A dataset: its config, the file format and the collector's code."""
-    return _key("dataset", {"config": dict(config), "format": format_version}, code_identity(collector))
+def dataset_id(config: Mapping[str, Any], collector: object, format_version: int, renderer: str = "") -> str:
+    """A dataset: its config, the file format, the collector's code and the GL renderer that draws its
+    frames (a GPU's EGL and Mesa's llvmpipe need not give the same pixels)."""
+    return _key("dataset", {"config": dict(config), "format": format_version, "renderer": renderer},
+                code_identity(collector))
 
 
 def feature_cache_id(dataset_fingerprint: str, base_identity: Mapping[str, Any], base: object,
-                     format_version: int) -> str:
+                     format_version: int, placement: Mapping[str, Any] | None = None) -> str:
     """A frozen base's per-frame features of one dataset: the base's settings and weights' checksum, the
-    cache format and the base's code."""
-    return _key("feature-cache", {"dataset": dataset_fingerprint, "base": dict(base_identity),
-                                  "format": format_version},
-                code_identity(base, "mftcn_bench.encoders.feature_cache"))
+    cache format, the base's code and (off the CPU) the device that computed them."""
+    inputs = {"dataset": dataset_fingerprint, "base": dict(base_identity), "format": format_version}
+    if placement is not None and placement.get("device") != "cpu":
+        inputs["placement"] = dict(placement)
+    return _key("feature-cache", inputs, code_identity(base, "mftcn_bench.encoders.feature_cache"))
 
 
 def encoder_fit_key(encoder_config: Mapping[str, Any], dataset_fingerprint: str, seed: int,
-                    encoder_code: CodeIdentity, base_identity: Mapping[str, Any] | None = None) -> str:
-    """A trained encoder: shared by every task whose dataset and encoder config are the same."""
+                    encoder_code: CodeIdentity, base_identity: Mapping[str, Any] | None = None,
+                    placement: Mapping[str, Any] | None = None) -> str:
+    """A trained encoder: shared by every task whose dataset and encoder config are the same. `placement`
+    (`Placement.identity()`) enters only off the CPU, so CPU keys are those of runs made before devices."""
     inputs: dict[str, Any] = {"encoder": dict(encoder_config), "dataset": dataset_fingerprint, "seed": seed}
     if base_identity is not None:
         inputs["base"] = dict(base_identity)
+    if placement is not None and placement.get("device") != "cpu":
+        inputs["placement"] = dict(placement)
     return _key("encoder-fit", inputs, encoder_code)
 
 
@@ -230,8 +237,12 @@ def run_code(encoder_class: type, task: object) -> RunCode:
     return RunCode(code_identity(encoder_class), code_identity(task), source_digest(["mftcn_bench.run.runner"]))
 
 
-def run_id(config: Mapping[str, Any], preset: str, seed: int, dataset_fingerprint: str, code: RunCode) -> str:
-    """One (encoder, task, preset, seed) run: the resolved config, the dataset and all the code involved."""
-    return content_hash({"kind": "run", "config": dict(config), "preset": preset, "seed": seed,
-                         "dataset": dataset_fingerprint, "code": code.key(),
-                         "libraries": library_versions()})
+def run_id(config: Mapping[str, Any], preset: str, seed: int, dataset_fingerprint: str, code: RunCode,
+           placement: Mapping[str, Any] | None = None) -> str:
+    """One (encoder, task, preset, seed) run: the resolved config, the dataset and all the code involved,
+    and (off the CPU, as `encoder_fit_key`) the device it computed on."""
+    inputs = {"kind": "run", "config": dict(config), "preset": preset, "seed": seed,
+              "dataset": dataset_fingerprint, "code": code.key(), "libraries": library_versions()}
+    if placement is not None and placement.get("device") != "cpu":
+        inputs["placement"] = dict(placement)
+    return content_hash(inputs)

@@ -26,6 +26,7 @@ from mftcn_bench.core.errors import DataError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock, resume_folder
 from mftcn_bench.core.provenance import content_hash, versions
 from mftcn_bench.data.chunks import read_chunk, write_chunk
+from mftcn_bench.sim.rendering import gl_renderer
 
 FORMAT_VERSION = 1
 SPLITS = ("train", "val", "test")  # "val" only holds episodes when the config asks for val_episodes
@@ -119,8 +120,9 @@ class MultiViewDataset:
 
 
 def dataset_id(config: Mapping[str, Any], collector: Collector) -> str:
-    """The dataset's identity: its config, the file format and the collector's code (`identity`)."""
-    return identity.dataset_id(config, collector, FORMAT_VERSION)
+    """The dataset's identity: its config, the file format, the collector's code and this machine's GL
+    renderer (`identity`, `sim.rendering.gl_renderer`)."""
+    return identity.dataset_id(config, collector, FORMAT_VERSION, gl_renderer())
 
 
 def _episode_plan(config: Mapping[str, Any]) -> list[tuple[int, str]]:
@@ -179,7 +181,7 @@ def ensure_dataset(
             bar.update(int(config["episode_length"]))
         bar.close()
         manifest = {"id": ident, "format": FORMAT_VERSION, "config": dict(config), "seed": config["seed"],
-                    "versions": versions(), "chunks": chunks}
+                    "versions": versions(), "renderer": gl_renderer(), "chunks": chunks}
         atomic_write_bytes(root / "manifest.json", json.dumps(manifest, indent=1, sort_keys=True).encode())
         progress_path.unlink(missing_ok=True)
         return MultiViewDataset(root)

@@ -11,8 +11,9 @@
   pass per frame, then the head over the gathered clips).
 - `SpecEncoder`: the parts of the `Encoder` contract that every built-in encoder shares (`info`,
   `needs_fit`, the no-op `fit` of untrained encoders, `save` / `load` of `net`); encoders override the rest.
-  `FrameHeadEncoder` adds `embed` / `embed_episode` for a `net` that embeds whole clips and splits into
-  `frame_features` / `head` (mfTCN, TCN, pixels-cnn).
+  `MovableEncoder` adds `to_device` for encoders whose code follows `self.device` (PVE and every
+  `FrameHeadEncoder`); `FrameHeadEncoder` adds `embed` / `embed_episode` for a `net` that embeds whole clips
+  and splits into `frame_features` / `head` (mfTCN, TCN, pixels-cnn).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from mftcn_bench.encoders.base import ClipBatch, EncoderInfo, FitBudget, Progres
 from mftcn_bench.encoders.streaming import FrameHeadNet
 
 T = TypeVar("T")
+CPU = torch.device("cpu")
 
 
 def parse_table(cls: type[T], encoder: str, section: str, table: Mapping[str, Any]) -> T:
@@ -69,7 +71,7 @@ def unloadable(path: Path, exc: BaseException, redo: str) -> BenchError:
 def load_payload(path: Path) -> Any:
     """Inverse of `save_payload` for a small checkpoint that is rebuilt rather than trained."""
     try:
-        return torch.load(path, weights_only=True)
+        return torch.load(path, weights_only=True, map_location="cpu")
     except Exception as exc:  # noqa: BLE001 - truncated or foreign file
         raise unloadable(path, exc, "build it") from None
 
@@ -79,10 +81,11 @@ def save_network(path: Path, net: nn.Module, image_shape: tuple[int, int]) -> No
     save_payload(path, {"model": net.state_dict(), "image_shape": list(image_shape)})
 
 
-def load_network(path: Path, net: nn.Module, image_shape: tuple[int, int]) -> None:
-    """Inverse of `save_network`; a bad file or another image shape is a one-line error."""
+def load_network(path: Path, net: nn.Module, image_shape: tuple[int, int], device: torch.device = CPU) -> None:
+    """Inverse of `save_network`, onto `device` (a checkpoint written on a GPU loads on a CPU-only machine);
+    a bad file or another image shape is a one-line error."""
     try:
-        state = torch.load(path, weights_only=True)
+        state = torch.load(path, weights_only=True, map_location=device)
         net.load_state_dict(state["model"])
     except Exception as exc:  # noqa: BLE001 - truncated, foreign or mismatched file
         raise unloadable(path, exc, "train") from None
@@ -107,13 +110,19 @@ def map_batches(fn: Callable[[torch.Tensor], torch.Tensor], inputs: torch.Tensor
 
 
 def embed_episode_by_frames(net: FrameHeadNet, frames: np.ndarray, frames_per_clip: int, stride: int,
-                            batch_size: int) -> np.ndarray:
+                            batch_size: int, device: torch.device = CPU) -> np.ndarray:
     """Embeddings of the clips ending at every frame of one view [T, H, W, 3]: one `frame_features` pass
-    per frame, then `head` over the per-frame features gathered by `clip_indices`, in batches."""
-    features = map_batches(net.frame_features, to_images(frames), batch_size)
-    index = torch.from_numpy(clip_indices(np.arange(len(frames)), frames_per_clip, stride))
+    per frame, then `head` over the per-frame features gathered by `clip_indices`, in batches (on
+    `device`, where `net` is)."""
+    features = map_batches(lambda rows: net.frame_features(rows.to(device)), to_images(frames), batch_size)
+    index = torch.from_numpy(clip_indices(np.arange(len(frames)), frames_per_clip, stride)).to(device)
     out = map_batches(lambda rows: net.head(features[rows]), index, batch_size)
-    return out.numpy().astype(np.float32, copy=False)
+    return to_numpy(out)
+
+
+def to_numpy(out: torch.Tensor) -> np.ndarray:
+    """Embeddings on any device -> float32 numpy on the CPU."""
+    return out.detach().cpu().numpy().astype(np.float32, copy=False)
 
 
 def check_image_shape(expected: tuple[int, int], dataset: MultiViewDataset) -> None:
@@ -133,6 +142,7 @@ class SpecEncoder:
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         self.spec, self.image_shape, self.seed = spec, tuple(image_shape), seed
         self.net: nn.Module | None = None
+        self.device = CPU  # where `net` computes; encoders that can move set it in `to_device`
 
     def counted_module(self) -> nn.Module | None:
         """The module whose parameters `info` reports: `net` unless the embedding uses only part of it."""
@@ -159,16 +169,25 @@ class SpecEncoder:
         save_network(path, self._network(), self.image_shape)
 
     def load(self, path: Path) -> None:
-        load_network(path, self._network(), self.image_shape)
+        load_network(path, self._network(), self.image_shape, self.device)
 
 
-class FrameHeadEncoder(SpecEncoder):
+class MovableEncoder(SpecEncoder):
+    """A `SpecEncoder` whose every tensor follows `self.device`: `to_device` (`core.device.DevicePlaced`)
+    moves `net` there, and training, embedding and streaming send their inputs there."""
+
+    def to_device(self, device: torch.device) -> None:
+        self.device = torch.device(device)
+        self._network().to(self.device)
+
+
+class FrameHeadEncoder(MovableEncoder):
     """A `SpecEncoder` whose `net` maps uint8 clips [B, n, 3, H, W] to [B, D] and has the `frame_features`
     / `head` split, so an episode is embedded with one `frame_features` pass per frame."""
 
     @torch.no_grad()
     def embed(self, clips: ClipBatch) -> np.ndarray:
-        return self._network()(to_images(clips.frames)).numpy().astype(np.float32, copy=False)
+        return to_numpy(self._network()(to_images(clips.frames).to(self.device)))
 
     @torch.no_grad()
     def embed_episode(self, frames: np.ndarray, state: np.ndarray | None = None,
@@ -176,4 +195,4 @@ class FrameHeadEncoder(SpecEncoder):
         """Embeddings of the clips ending at every frame of one view [T, H, W, 3]: one per-frame pass
         per frame, then the head over gathered features (`embed_episode_by_frames`)."""
         net = cast(FrameHeadNet, self._network())
-        return embed_episode_by_frames(net, frames, self.spec.frames, self.spec.stride, batch_size)
+        return embed_episode_by_frames(net, frames, self.spec.frames, self.spec.stride, batch_size, self.device)

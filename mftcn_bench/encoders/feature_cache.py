@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from mftcn_bench.core import identity
+from mftcn_bench.core.device import CPU, Placement
 from mftcn_bench.core.errors import DataError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock, resume_folder
 from mftcn_bench.core.provenance import file_sha256
@@ -47,10 +48,13 @@ def frames_digest(frames: np.ndarray) -> str:
 
 
 @torch.no_grad()
-def base_features(base: nn.Module, frames: np.ndarray, batch_size: int) -> np.ndarray:
-    """float32 [T, C, h, w] base features of uint8 frames [T, H, W, 3], in batches."""
+def base_features(base: nn.Module, frames: np.ndarray, batch_size: int,
+                  device: torch.device | None = None) -> np.ndarray:
+    """float32 [T, C, h, w] base features of uint8 frames [T, H, W, 3], in batches on `device` (where
+    `base` is; the CPU by default)."""
     images = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)
-    parts = [base(images[i:i + batch_size]) for i in range(0, len(images), batch_size)]
+    target = device or torch.device("cpu")
+    parts = [base(images[i:i + batch_size].to(target)).cpu() for i in range(0, len(images), batch_size)]
     return torch.cat(parts).numpy().astype(np.float32, copy=False)
 
 
@@ -106,16 +110,20 @@ class FeatureCache:
         return self.load(episode)[view]
 
 
-def cache_id(dataset: MultiViewDataset, base: nn.Module, base_identity: Mapping[str, Any]) -> str:
-    """The cache's identity: the dataset, the base's settings and weights, its code, the cache format."""
-    return identity.feature_cache_id(dataset.fingerprint, base_identity, base, FORMAT_VERSION)
+def cache_id(dataset: MultiViewDataset, base: nn.Module, base_identity: Mapping[str, Any],
+             placement: Placement = CPU) -> str:
+    """The cache's identity: the dataset, the base's settings and weights, its code, the cache format and
+    the device whose base passes computed it."""
+    return identity.feature_cache_id(dataset.fingerprint, base_identity, base, FORMAT_VERSION,
+                                     placement.identity())
 
 
 def ensure_feature_cache(features_dir: Path, dataset: MultiViewDataset, base: nn.Module,
                          base_identity: Mapping[str, Any], *, batch_size: int = 64,
-                         show_progress: bool = True) -> FeatureCache:
-    """The cache of `base`'s features on every episode of `dataset`, built (or finished) if needed."""
-    ident = cache_id(dataset, base, base_identity)
+                         show_progress: bool = True, placement: Placement = CPU) -> FeatureCache:
+    """The cache of `base`'s features on every episode of `dataset`, built (or finished) if needed; the base
+    runs on `placement`'s device (where it must already be)."""
+    ident = cache_id(dataset, base, base_identity, placement)
     root = features_dir / f"{dataset.config['name']}-{ident}"
     if (root / "manifest.json").exists():
         return FeatureCache(root)
@@ -137,7 +145,8 @@ def ensure_feature_cache(features_dir: Path, dataset: MultiViewDataset, base: nn
             if entry is None or not (root / name).exists():
                 episode = dataset.load(index)
                 start = time.monotonic()
-                stacked = np.stack([base_features(base, view, batch_size) for view in episode.frames])
+                stacked = np.stack([base_features(base, view, batch_size, placement.torch_device)
+                                    for view in episode.frames])
                 computed_s += time.monotonic() - start
                 buffer = _npy_bytes(stacked)
                 atomic_write_bytes(root / name, buffer)
@@ -153,7 +162,7 @@ def ensure_feature_cache(features_dir: Path, dataset: MultiViewDataset, base: nn
         ordered = [done[f"ep{i:05d}.npy"] for i in episodes]
         manifest = {"id": ident, "format": FORMAT_VERSION, "dataset": dataset.fingerprint,
                     "dataset_path": str(dataset.root), "base": dict(base_identity), "feature_shape": shape,
-                    "frames": total, "build_s": round(time.monotonic() - began, 3),
+                    "frames": total, "device": placement.record(), "build_s": round(time.monotonic() - began, 3),
                     "base_forward_s": round(computed_s, 3), "episodes": ordered}
         atomic_write_bytes(root / "manifest.json", json.dumps(manifest, indent=1, sort_keys=True).encode())
         progress_path.unlink(missing_ok=True)

@@ -87,7 +87,8 @@ class SingleViewTrainConfig:
 
 def train_single_view(net: nn.Module, dataset: MultiViewDataset, config: SingleViewTrainConfig,
                       budget: FitBudget, progress: ProgressFn, workdir: Path, *, seed: int, min_length: int,
-                      batch_loss: BatchLoss, load: EpisodeLoader | None = None) -> dict[str, float]:
+                      batch_loss: BatchLoss, load: EpisodeLoader | None = None,
+                      device: torch.device | None = None) -> dict[str, float]:
     """Adam on `batch_loss` for `budget.steps` steps; returns {'final_loss', 'steps', 'seconds'}. The pool
     holds decoded episodes, or what `load` gives per episode (cached base features).
 
@@ -102,4 +103,4 @@ def train_single_view(net: nn.Module, dataset: MultiViewDataset, config: SingleV
         raise SpecError(f"this encoder's training samples need episodes of at least {min_length} frames; the "
                         f"shortest train episode has {shortest}")
     return run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss,
-                        load=load)
+                        load=load, device=device)

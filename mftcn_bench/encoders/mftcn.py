@@ -29,7 +29,7 @@ from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
 from mftcn_bench.encoders.bases import BaseConfig, FrozenBase, base_channels, build_base
-from mftcn_bench.encoders.common import FrameHeadEncoder, check_image_shape, map_batches, parse_table
+from mftcn_bench.encoders.common import FrameHeadEncoder, check_image_shape, map_batches, parse_table, to_numpy
 from mftcn_bench.encoders.feature_cache import FeatureCache, base_features
 from mftcn_bench.encoders.streaming import StreamingEmbedder
 from mftcn_bench.encoders.training import ContrastiveTrainConfig, train_multiview
@@ -152,11 +152,13 @@ class OnBaseEncoder(FrameHeadEncoder):
         cache when it holds these frames (else one base pass per frame), the adapter per frame, then the
         head over gathered features."""
         cached = None if self.feature_cache is None else self.feature_cache.lookup(frames)
-        base = base_features(self.net.base, frames, batch_size) if cached is None else np.array(cached)
-        features = map_batches(self.net.adapter, torch.from_numpy(base), batch_size)
+        base = (base_features(self.net.base, frames, batch_size, self.device) if cached is None
+                else np.array(cached))
+        features = map_batches(lambda rows: self.net.adapter(rows.to(self.device)), torch.from_numpy(base),
+                               batch_size)
         index = torch.from_numpy(clip_indices(np.arange(len(frames)), self.spec.frames, self.spec.stride))
-        out = map_batches(lambda rows: self.net.head(features[rows]), index, batch_size)
-        return out.numpy().astype(np.float32, copy=False)
+        out = map_batches(lambda rows: self.net.head(features[rows.to(self.device)]), index, batch_size)
+        return to_numpy(out)
 
 
 class MfTCNEncoder(OnBaseEncoder):
@@ -185,9 +187,9 @@ class MfTCNEncoder(OnBaseEncoder):
         check_image_shape(self.image_shape, dataset)
         return train_multiview(self.net, dataset, self.train_config, budget, progress, workdir,
                                frames=self.spec.frames, stride=self.spec.stride, seed=self.seed,
-                               features=self.training_features())
+                               features=self.training_features(), device=self.device)
 
     def streaming(self, num_envs: int) -> StreamingEmbedder:
         """A streaming embedder over `num_envs` environments: one base and adapter pass per new frame,
         per-frame features of the lookback window kept in a ring buffer (see `streaming.py`)."""
-        return StreamingEmbedder(self.net, self.spec.frames, self.spec.stride, num_envs)
+        return StreamingEmbedder(self.net, self.spec.frames, self.spec.stride, num_envs, self.device)

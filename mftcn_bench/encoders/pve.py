@@ -37,7 +37,7 @@ from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import ClipBatch, FitBudget, ProgressFn
-from mftcn_bench.encoders.common import SpecEncoder, check_image_shape, map_batches, parse_table, to_images
+from mftcn_bench.encoders.common import MovableEncoder, check_image_shape, map_batches, parse_table, to_images, to_numpy
 from mftcn_bench.encoders.frame_cnn import CNNConfig, FrameNet, SingleViewTrainConfig, train_single_view
 from mftcn_bench.encoders.training import EpisodePool
 
@@ -127,7 +127,7 @@ def sample_triplets(pool: EpisodePool, rng: np.random.Generator, count: int,
     return np.stack(frames), np.stack(actions).astype(np.float32)
 
 
-class PVEEncoder(SpecEncoder):
+class PVEEncoder(MovableEncoder):
     """Position from one frame, velocity as its finite difference; embedding [p_t, v_t]."""
 
     needs_fit = True
@@ -150,9 +150,9 @@ class PVEEncoder(SpecEncoder):
         """The weighted prior loss of one sampled batch, and each prior's value."""
         config = self.train_config
         frames, actions = sample_triplets(pool, rng, config.batch_size, config.camera_index)
-        images = to_images(frames)
+        images = to_images(frames).to(self.device)
         positions = self.net(images.reshape(-1, *images.shape[2:])).reshape(len(frames), 3, -1)
-        terms = prior_terms(positions, torch.from_numpy(actions))
+        terms = prior_terms(positions, torch.from_numpy(actions).to(self.device))
         weights = config.weights()
         loss = sum(weights[name] * value for name, value in terms.items())
         return loss, {name: float(value.detach()) for name, value in terms.items()}
@@ -161,21 +161,18 @@ class PVEEncoder(SpecEncoder):
             workdir: Path) -> dict[str, float]:
         check_image_shape(self.image_shape, dataset)
         return train_single_view(self.net, dataset, self.train_config, budget, progress, workdir,
-                                 seed=self.seed, min_length=3, batch_loss=self.batch_loss)
+                                 seed=self.seed, min_length=3, batch_loss=self.batch_loss, device=self.device)
 
     @torch.no_grad()
     def embed(self, clips: ClipBatch) -> np.ndarray:
-        images = to_images(clips.frames)
+        images = to_images(clips.frames).to(self.device)
         positions = self.net(images.reshape(-1, *images.shape[2:])).reshape(len(images), 2, -1)
-        out = torch.cat([positions[:, 1], positions[:, 1] - positions[:, 0]], dim=1)
-        return out.numpy().astype(np.float32, copy=False)
+        return to_numpy(torch.cat([positions[:, 1], positions[:, 1] - positions[:, 0]], dim=1))
 
     @torch.no_grad()
     def embed_episode(self, frames: np.ndarray, state: np.ndarray | None = None,
                       batch_size: int = 256) -> np.ndarray:
         """[p_t, p_t - p_{t-1}] for every frame of one view [T, H, W, 3]: one CNN pass per frame."""
-        images = to_images(frames)
-        positions = map_batches(self.net, images, batch_size)
-        previous = torch.from_numpy(clip_indices(np.arange(len(frames)), 2, 1)[:, 0])
-        out = torch.cat([positions, positions - positions[previous]], dim=1)
-        return out.numpy().astype(np.float32, copy=False)
+        positions = map_batches(lambda rows: self.net(rows.to(self.device)), to_images(frames), batch_size)
+        previous = torch.from_numpy(clip_indices(np.arange(len(frames)), 2, 1)[:, 0]).to(self.device)
+        return to_numpy(torch.cat([positions, positions - positions[previous]], dim=1))

@@ -151,11 +151,11 @@ class ShuffleAndLearnEncoder(OnBaseEncoder):
         count = items.shape[0]
         single = items.reshape(count * 3, 1, *items.shape[2:])
         if self.training_features() is None:
-            trunk = self.net(to_images(single))
+            trunk = self.net(to_images(single).to(self.device))
         else:
-            trunk = self.net.head_on_base(torch.from_numpy(np.ascontiguousarray(single)))
+            trunk = self.net.head_on_base(torch.from_numpy(np.ascontiguousarray(single)).to(self.device))
         logits = self.classifier(trunk.reshape(count, -1)).squeeze(-1)
-        target = torch.from_numpy(labels)
+        target = torch.from_numpy(labels).to(self.device)
         accuracy = float(((logits.detach() > 0).float() == target).float().mean())
         return self.loss_fn(logits, target), {"accuracy": accuracy}
 
@@ -167,8 +167,13 @@ class ShuffleAndLearnEncoder(OnBaseEncoder):
         trained = nn.ModuleDict({"trunk": self.net, "classifier": self.classifier})
         return train_single_view(trained, dataset, self.train_config, budget, progress, workdir,
                                  seed=self.seed, min_length=min_length, batch_loss=self.batch_loss,
-                                 load=None if cache is None else cache.load)
+                                 load=None if cache is None else cache.load, device=self.device)
+
+    def to_device(self, device: torch.device) -> None:
+        """The trunk and the order classifier move to `device`."""
+        super().to_device(device)
+        self.classifier.to(self.device)
 
     def streaming(self, num_envs: int) -> StreamingEmbedder:
         """One base and adapter pass per new frame, then the trunk's head."""
-        return StreamingEmbedder(self.net, 1, 1, num_envs)
+        return StreamingEmbedder(self.net, 1, 1, num_envs, self.device)

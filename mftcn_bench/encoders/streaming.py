@@ -35,8 +35,10 @@ class FrameHeadNet(Protocol):
 class StreamingEmbedder:
     """Embeds the clip ending at each new frame of `num_envs` environments stepped together."""
 
-    def __init__(self, net: FrameHeadNet, frames: int, stride: int, num_envs: int) -> None:
+    def __init__(self, net: FrameHeadNet, frames: int, stride: int, num_envs: int,
+                 device: torch.device | None = None) -> None:
         self.net, self.frames, self.stride, self.num_envs = net, frames, stride, num_envs
+        self.device = device or torch.device("cpu")  # where `net` is: frames go there once, embeddings come back
         self._ring = ClipRing(frames, stride, num_envs)  # per-frame base features [E, lookback, C, h, w]
         self.lookback = self._ring.lookback
 
@@ -52,7 +54,7 @@ class StreamingEmbedder:
         frames = np.asarray(frames)
         if frames.ndim != 4 or frames.shape[0] != self.num_envs or frames.shape[-1] != 3:
             raise ValueError(f"frames must be [{self.num_envs}, H, W, 3], got {frames.shape}")
-        images = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)
+        images = torch.from_numpy(np.ascontiguousarray(frames)).to(self.device).permute(0, 3, 1, 2)
         self._ring.push(self.net.frame_features(images), episode_start)  # one base pass per new frame
 
     @torch.no_grad()
@@ -60,4 +62,4 @@ class StreamingEmbedder:
         """New frames uint8 [E, H, W, 3] and which environments start an episode with them (bool [E])
         -> float32 [E, D], the embedding of the clip ending at each new frame. `state` is not used."""
         self.observe(frames, episode_start, state)
-        return self.net.head(self._ring.clip()).numpy().astype(np.float32, copy=False)
+        return self.net.head(self._ring.clip()).cpu().numpy().astype(np.float32, copy=False)

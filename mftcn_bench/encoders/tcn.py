@@ -231,7 +231,8 @@ def gather_triplets(pool: EpisodePool, plan: TripletPlan, frames: int, stride: i
 
 def train_triplet(net: OnBaseNet, dataset: MultiViewDataset, config: TCNTrainConfig, budget: FitBudget,
                   progress: ProgressFn, workdir: Path, *, frames: int, stride: int,
-                  seed: int, features: FeatureCache | None = None) -> dict[str, float]:
+                  seed: int, features: FeatureCache | None = None,
+                  device: torch.device | None = None) -> dict[str, float]:
     """Train `net` with the single-view triplet loss; returns {'final_loss', 'steps', 'seconds'}.
 
     Same pool, optimizer and checkpoint/resume scheme as `train_multiview`; with `features`, on cached base
@@ -242,11 +243,12 @@ def train_triplet(net: OnBaseNet, dataset: MultiViewDataset, config: TCNTrainCon
         raise SpecError(f"train.negative_margin of {config.negative_margin} frames needs episodes of at least "
                         f"{config.negative_margin + 2} frames; the shortest train episode has {shortest}")
     views = len(dataset.cameras)
+    target = device or torch.device("cpu")
 
     def embed(batch: np.ndarray) -> torch.Tensor:
         if features is None:
-            return net(torch.from_numpy(batch).permute(0, 1, 4, 2, 3))
-        return net.head_on_base(torch.from_numpy(batch))
+            return net(torch.from_numpy(batch).to(target).permute(0, 1, 4, 2, 3))
+        return net.head_on_base(torch.from_numpy(batch).to(target))
 
     def batch_loss(pool: EpisodePool, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         lengths = {i: pool.length(i) for i in pool.episodes}
@@ -258,7 +260,7 @@ def train_triplet(net: OnBaseNet, dataset: MultiViewDataset, config: TCNTrainCon
         return triplet_loss(anchors, positives, negatives, config.margin), {}
 
     return run_training(net, dataset, base, budget, progress, workdir, seed=seed, batch_loss=batch_loss,
-                        load=None if features is None else features.load)
+                        load=None if features is None else features.load, device=device)
 
 
 class TCNEncoder(MfTCNEncoder):
@@ -282,4 +284,4 @@ class TCNEncoder(MfTCNEncoder):
         check_image_shape(self.image_shape, dataset)
         return train_triplet(self.net, dataset, self.tcn_train_config, budget, progress, workdir,
                              frames=self.spec.frames, stride=self.spec.stride, seed=self.seed,
-                             features=self.training_features())
+                             features=self.training_features(), device=self.device)

@@ -18,6 +18,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from mftcn_bench.core.device import cuda_rng_state, restore_cuda_rng_state
 from mftcn_bench.core.errors import SpecError, TrainingError
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import Episode, MultiViewDataset
@@ -102,7 +103,7 @@ def _save_checkpoint(path: Path, net: torch.nn.Module, opt: torch.optim.Optimize
     save_payload(path, {"model": net.state_dict(), "optimizer": opt.state_dict(), "step": step,
                         "pool": sorted(pool.episodes),
                         "numpy_rng": json.dumps(rng.bit_generator.state),
-                        "torch_rng": torch.get_rng_state()})
+                        "torch_rng": torch.get_rng_state(), "cuda_rng": cuda_rng_state()})
 
 
 def check_optimizer(config: LoopConfig) -> None:
@@ -128,8 +129,9 @@ BatchLoss = Callable[[EpisodePool, np.random.Generator], tuple[torch.Tensor, dic
 
 def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopConfig, budget: FitBudget,
                  progress: ProgressFn, workdir: Path, *, seed: int, batch_loss: BatchLoss,
-                 load: EpisodeLoader | None = None) -> dict[str, float]:
-    """Adam on `batch_loss` for `budget.steps` steps, drawing batches from a pool of train episodes.
+                 load: EpisodeLoader | None = None, device: torch.device | None = None) -> dict[str, float]:
+    """Adam on `batch_loss` for `budget.steps` steps, drawing batches from a pool of train episodes; `net`
+    and `batch_loss` compute on `device` (checkpoints load onto it).
 
     Checkpoints (model, optimizer, step, pool members, random states) go to `workdir/train_checkpoint.pt`
     every `checkpoint_every` steps and training resumes from there bit for bit. A non-finite loss stops
@@ -145,14 +147,15 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
     start, members = 0, None
     if checkpoint.exists():
         try:
-            state = torch.load(checkpoint, weights_only=True)
+            state = torch.load(checkpoint, weights_only=True, map_location=device or "cpu")
             net.load_state_dict(state["model"])
             opt.load_state_dict(state["optimizer"])
         except Exception as exc:  # noqa: BLE001 - a truncated or foreign file
             raise TrainingError(f"training checkpoint {checkpoint} cannot be loaded ({load_failure(exc)}); "
                                 f"rerun with --force (or delete it) to train from the start") from None
         start, members = int(state["step"]), [int(i) for i in state["pool"]]
-        torch.set_rng_state(state["torch_rng"])
+        torch.set_rng_state(state["torch_rng"].cpu())
+        restore_cuda_rng_state(state.get("cuda_rng"))
         rng.bit_generator.state = json.loads(state["numpy_rng"])
     pool = EpisodePool(dataset, config.episode_pool, config.pool_refresh_steps, rng, members, load)
     net.train()
@@ -187,9 +190,12 @@ class BaseFeatureHead(Protocol):
 
 def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: ContrastiveTrainConfig,
                     budget: FitBudget, progress: ProgressFn, workdir: Path, *, frames: int, stride: int,
-                    seed: int, features: FeatureCache | None = None) -> dict[str, float]:
+                    seed: int, features: FeatureCache | None = None,
+                    device: torch.device | None = None) -> dict[str, float]:
     """Train `net` (uint8 clips [B, n, 3, H, W] -> [B, D]) with multi-view n-pairs; with `features`, on clips
-    of cached base features through `net.head_on_base` (a `BaseFeatureHead`) instead of frames."""
+    of cached base features through `net.head_on_base` (a `BaseFeatureHead`) instead of frames. Batches go
+    to `device` (where `net` is) once a step."""
+    target = device or torch.device("cpu")
     if len(dataset.cameras) < 2:
         raise SpecError("time-contrastive training needs a dataset with at least two camera views")
     lookback = (frames - 1) * stride + 1
@@ -201,14 +207,14 @@ def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: Con
     load: EpisodeLoader | None = None
     if features is None:
         def embed(batch: np.ndarray) -> torch.Tensor:
-            return net(torch.from_numpy(batch).permute(0, 1, 4, 2, 3))
+            return net(torch.from_numpy(batch).to(target).permute(0, 1, 4, 2, 3))
     else:
         if not isinstance(net, BaseFeatureHead):
             raise TypeError(f"{type(net).__name__} cannot train on cached features: it has no head_on_base")
         head, load = net, features.load
 
         def embed(batch: np.ndarray) -> torch.Tensor:
-            return head.head_on_base(torch.from_numpy(batch))
+            return head.head_on_base(torch.from_numpy(batch).to(target))
 
     def batch_loss(pool: EpisodePool, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         lengths = {i: pool.length(i) for i in pool.episodes}
@@ -220,4 +226,4 @@ def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: Con
         return multiview_npairs_loss(embeddings, config.reg_lambda), {}
 
     return run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss,
-                        load=load)
+                        load=load, device=device)

@@ -101,8 +101,9 @@ def _quiet_stderr() -> Iterator[None]:
 
 
 class RayExecutor:
-    """Each job a Ray task needing one CPU. Without an address a local Ray instance with `workers` CPUs
-    is started (or the one this process already started is used); with one, that cluster is joined."""
+    """Each job a Ray task needing one CPU (and one GPU when it runs on CUDA). Without an address a local
+    Ray instance with `workers` CPUs is started (or the one this process already started is used); with
+    one, that cluster is joined."""
 
     name = "ray"
 
@@ -133,7 +134,9 @@ class RayExecutor:
 
     def map(self, specs: Sequence[JobSpec]) -> Iterator[tuple[int, JobResult]]:
         ray = self._ray
-        refs = {self._remote.remote(spec): i for i, spec in enumerate(specs)}
+        # A CUDA job asks Ray for one GPU; Ray then shows the task only that GPU (as cuda:0).
+        refs = {self._remote.options(num_gpus=1 if spec.device.startswith("cuda") else 0).remote(spec): i
+                for i, spec in enumerate(specs)}
         pending = list(refs)
         while pending:
             done, pending = ray.wait(pending, num_returns=1)

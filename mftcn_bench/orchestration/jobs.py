@@ -31,6 +31,8 @@ class JobSpec:
     overrides: Sequence[tuple[str, Any]]
     home: str | None
     threads: int = 1
+    device: str = "cpu"           # what the job's RunRequest asks for (`Sweep._job_device`)
+    deterministic: bool = False
 
 
 @dataclass(frozen=True)
@@ -53,7 +55,8 @@ def _work(spec: JobSpec) -> JobResult:
     from mftcn_bench.run.runner import RunRequest, build_encoder, prepare, prepare_dataset, run
 
     home = BenchHome.resolve(spec.home)
-    request = RunRequest(spec.encoder, spec.task, spec.preset, spec.seed, tuple(spec.overrides))
+    request = RunRequest(spec.encoder, spec.task, spec.preset, spec.seed, tuple(spec.overrides),
+                         device=spec.device, deterministic=spec.deterministic)
     if spec.kind == "run":
         outcome = run(request, home, show_progress=False)
         return JobResult(True, fingerprint=outcome.record.dataset_id, record=outcome.record, reused=outcome.reused)

@@ -43,6 +43,8 @@ class SweepRequest:
     address: str | None = None
     workers: int = 2
     threads: int = 1
+    device: str = "auto"
+    deterministic: bool = False
 
 
 @dataclass
@@ -101,7 +103,8 @@ class Sweep:
             raise SpecError(f"--threads must be >= 1, got {request.threads}")
         self.request, self.home, self.echo = request, home, echo
         self.prepared: list[PreparedRun] = [
-            prepare(RunRequest(e, t, request.preset, s, request.overrides))
+            prepare(RunRequest(e, t, request.preset, s, request.overrides, device=request.device,
+                               deterministic=request.deterministic))
             for e in request.encoders for t in request.tasks for s in request.seeds
         ]
         self.jobs = [SweepJob(p.request.encoder, p.request.task, p.request.seed, p.preset) for p in self.prepared]
@@ -109,15 +112,28 @@ class Sweep:
         # Cluster workers use their own home; local ones (pool or local Ray) share the driver's.
         self.worker_home = None if request.address else str(home.root)
 
-    def _spec(self, kind: JobKind, prepared: PreparedRun) -> JobSpec:
+    def _spec(self, kind: JobKind, prepared: PreparedRun, index: int = 0) -> JobSpec:
         r = prepared.request
         return JobSpec(kind, r.encoder, r.task, r.preset, r.seed, tuple(r.overrides), self.worker_home,
-                       self.request.threads)
+                       self.request.threads, self._job_device(prepared, index), r.deterministic)
+
+    def _job_device(self, prepared: PreparedRun, index: int) -> str:
+        """The device a job asks for: the CPU, or on a GPU machine the driver's GPUs in turn (a local pool
+        of more workers than GPUs shares them; the index is not part of a run's identity). A Ray task asks
+        for one GPU and sees only the one Ray gives it, as cuda:0."""
+        placement = prepared.placement
+        if not placement.is_cuda:
+            return "cpu"
+        if self.request.executor == "ray" or ":" in prepared.request.device:
+            return "cuda" if self.request.executor == "ray" else placement.device
+        import torch
+
+        return f"cuda:{index % max(1, torch.cuda.device_count())}"
 
     def _phase(self, executor: Executor, kind: JobKind, groups: dict[str, list[int]]) -> dict[str, JobResult]:
         """One job per group (its first member's), results by group key."""
         keys = list(groups)
-        specs = [self._spec(kind, self.prepared[groups[k][0]]) for k in keys]
+        specs = [self._spec(kind, self.prepared[groups[k][0]], n) for n, k in enumerate(keys)]
         results: dict[str, JobResult] = {}
         for n, (i, result) in enumerate(executor.map(specs), 1):
             results[keys[i]] = result
@@ -192,7 +208,7 @@ class Sweep:
                     self._fail(i, f"encoder: {result.error}")
         # 4. the runs
         runs = [i for i in todo if self.jobs[i].status == "planned"]
-        specs = [self._spec("run", self.prepared[i]) for i in runs]
+        specs = [self._spec("run", self.prepared[i], n) for n, i in enumerate(runs)]
         for n, (k, result) in enumerate(executor.map(specs), 1):
             job = self.jobs[runs[k]]
             job.seconds = result.seconds

@@ -246,10 +246,11 @@ def _control_task(task: str, encoder: str, overrides: Sequence[tuple[str, Any]] 
     return prepare(RunRequest(encoder, task, "paper", 0, tuple(overrides))).task
 
 
-def _suite_collector(encoder_name: str, sizes: Sizes, agent_steps: int, task: str = "swingup"):
+def _suite_collector(encoder_name: str, sizes: Sizes, agent_steps: int, task: str = "swingup", device=None):
     """torchrl's Collector over the harness's SuiteBatchEnv with the PPO policy of the task (untrained),
-    as `train_ppo` builds them; one batch is one episode of `agent_steps` agent steps."""
-
+    as `train_ppo` builds them; one batch is one episode of `agent_steps` agent steps. With `device`, the
+    encoder (when it can move) and the policy compute there, as in a run with --device."""
+    from mftcn_bench.core.device import DevicePlaced
     from mftcn_bench.core.specs import encoder_spec_from_config
     from mftcn_bench.encoders.base import uses_pixels
     from mftcn_bench.rl.observers import make_observer
@@ -263,17 +264,21 @@ def _suite_collector(encoder_name: str, sizes: Sizes, agent_steps: int, task: st
     control, data = prepared.task, prepared.task.dataset_config
     spec = encoder_spec_from_config(prepared.encoder_entry.description, prepared.config["encoder"])
     encoder = prepared.encoder_entry.load()(spec, image_shape=(data["height"], data["width"]), seed=0)
+    if device is not None and isinstance(encoder, DevicePlaced):
+        encoder.to_device(device)
     info = encoder.info
     env = SuiteBatchEnv(control.env_config, sizes.ppo_envs, 0, make_observer(encoder, sizes.ppo_envs),
                         info.embedding_dim, uses_pixels(encoder), lookback=info.lookback)
-    return _collector(env, PolicyNetworks(env, control.ppo, None).policy, sizes.ppo_envs * agent_steps), repeat
+    nets = PolicyNetworks(env, control.ppo, None).to(device or "cpu")
+    return _collector(env, nets.policy, sizes.ppo_envs * agent_steps, device), repeat
 
 
-def _collector(env, policy, batch: int):
+def _collector(env, policy, batch: int, device=None):
     from torchrl.collectors import Collector
 
+    placed = {} if device is None else {"env_device": "cpu", "policy_device": device, "storing_device": device}
     return Collector(env, policy, frames_per_batch=batch, total_frames=-1,
-                     reset_at_each_iter=True, auto_register_policy_transforms=False)
+                     reset_at_each_iter=True, auto_register_policy_transforms=False, **placed)
 
 
 def _serial_collector(sizes: Sizes, frame_skip: int, task: str = "swingup"):
@@ -598,12 +603,18 @@ def bench_probe_rss(sizes: Sizes, workdir: Path) -> BenchRow:
 
 # -- the whole suite --------------------------------------------------------------------------------------
 FIGURES = ("render", "streaming", "ppo-pixels", "ppo-state", "training", "feature-cache", "head-training",
-           "embedding", "dataset", "probe-rss")
+           "embedding", "dataset", "probe-rss", "device")
+# Run by default only on a GPU (`--device` resolving to CUDA); on the CPU `--only device` checks the path.
+ON_DEVICE_ONLY = ("device",)
 
 
 def run_bench(sizes: Sizes, only: Sequence[str] = FIGURES, workdir: Path | None = None,
-              progress: Callable[[str], None] | None = None) -> list[BenchRow]:
-    """The figures named in `only`, in FIGURES order; data goes to `workdir` (a temporary folder if None)."""
+              progress: Callable[[str], None] | None = None, placement=None) -> list[BenchRow]:
+    """The figures named in `only`, in FIGURES order; data goes to `workdir` (a temporary folder if None);
+    "device" compares `placement`'s device (default: the CPU) with the CPU."""
+    from mftcn_bench.core.device import CPU
+    from mftcn_bench.perf.bench_device import bench_device
+
     unknown = sorted(set(only) - set(FIGURES))
     if unknown:
         from mftcn_bench.core.errors import SpecError
@@ -622,6 +633,7 @@ def run_bench(sizes: Sizes, only: Sequence[str] = FIGURES, workdir: Path | None 
             "embedding": lambda: bench_embedding(sizes, work),
             "dataset": lambda: bench_dataset_read(sizes, work),
             "probe-rss": lambda: bench_probe_rss(sizes, work),
+            "device": lambda: bench_device(sizes, work, placement or CPU),
         }
         rows: list[BenchRow] = []
         for name in FIGURES:
@@ -668,21 +680,29 @@ def add_command(commands: argparse._SubParsersAction) -> None:
     bench = commands.add_parser("bench", help="speed benchmarks, each a ratio against a reference run beside it")
     bench.add_argument("--quick", action="store_true", help="CI sizes: about a minute or two on 2 cores")
     bench.add_argument("--out", help="also write the table, with the machine it ran on, to this markdown file")
-    bench.add_argument("--only", help=f"comma-separated figures (default all): {', '.join(FIGURES)}")
+    bench.add_argument("--only", help=f"comma-separated figures (default all; 'device' only on a GPU): "
+                                      f"{', '.join(FIGURES)}")
+    bench.add_argument("--device", help="the device of the 'device' figures, against the CPU (default "
+                                        "$MFTCN_BENCH_DEVICE or auto)")
     bench.set_defaults(handler=cmd_bench)
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
     import sys
 
-    from mftcn_bench.sim.rendering import ensure_gl
+    from mftcn_bench.core.device import requested_device, resolve_device
+    from mftcn_bench.sim.rendering import ensure_gl, follow_device, gl_renderer
 
+    placement = resolve_device(requested_device(args.device))
+    follow_device(placement.device)
     ensure_gl()
     _one_thread()
     sizes = QUICK if args.quick else FULL
-    only = [name.strip() for name in args.only.split(",")] if args.only else list(FIGURES)
+    only = ([name.strip() for name in args.only.split(",")] if args.only else
+            [f for f in FIGURES if f not in ON_DEVICE_ONLY or placement.is_cuda])
     began = time.monotonic()
-    rows = run_bench(sizes, only, progress=lambda line: print(f"bench {line}", file=sys.stderr, flush=True))
+    rows = run_bench(sizes, only, progress=lambda line: print(f"bench {line}", file=sys.stderr, flush=True),
+                     placement=placement)
     table = format_table(rows)
     print(table)
     notes = [f"- {row.figure}: {row.note}" for row in rows if row.note]
@@ -691,6 +711,8 @@ def cmd_bench(args: argparse.Namespace) -> None:
     missed = [row.figure for row in rows if row.met is False]
     summary = f"{met} of {sum(row.met is not None for row in rows)} targets met ({sizes.name} sizes, " \
               f"{time.monotonic() - began:.0f} s)" + (f"; not met: {'; '.join(missed)}" if missed else "")
+    summary += f"\ndevice: {placement.device}" + (f" ({placement.gpu})" if placement.gpu else "") + \
+               f"; GL renderer: {gl_renderer()}"
     print(summary)
     if args.out:
         text = (f"# mftcn-bench bench ({sizes.name})\n\n{machine_description()}\n\n{table}\n\n"

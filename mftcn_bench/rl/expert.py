@@ -73,7 +73,7 @@ class ExpertPolicy:
 
         self._nets = PolicyNetworks(state_env_factory(env_config)(1, 0), ppo, None)
         try:
-            self._nets.load_state_dict(torch.load(path, weights_only=True)["nets"])
+            self._nets.load_state_dict(torch.load(path, weights_only=True, map_location="cpu")["nets"])
         except Exception as exc:  # noqa: BLE001 - an unreadable expert gets one line
             raise TrainingError(f"expert policy {path} cannot be read ({type(exc).__name__}); delete its folder "
                                 f"to train it again") from None

@@ -33,6 +33,7 @@ from torchrl.modules import MLP, ActorValueOperator, IndependentNormal, Probabil
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from mftcn_bench.core.device import cuda_rng_state, restore_cuda_rng_state
 from mftcn_bench.core.errors import SpecError, TrainingError
 from mftcn_bench.core.fileio import atomic_write_bytes
 from mftcn_bench.rl.suite_env import EnvFactory, SuiteBatchEnv
@@ -157,16 +158,21 @@ class PolicyNetworks(nn.Module):
 def episode_returns(batch, num_envs: int, agent_steps: int) -> np.ndarray:
     """Undiscounted returns of the whole episodes in a batch [num_envs, episodes x agent_steps]."""
     reward = batch.get(("next", "reward")).reshape(num_envs, -1, agent_steps)
-    return reward.sum(-1).flatten().double().numpy()
+    return reward.sum(-1).flatten().double().cpu().numpy()
 
 
 def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
-              progress: Progress, trunk: nn.Module | None = None) -> tuple[PolicyNetworks, TrainState]:
-    """Train a policy; resumes from `workdir/ppo_checkpoint.pt` if a killed run left one."""
+              progress: Progress, trunk: nn.Module | None = None,
+              device: torch.device | None = None) -> tuple[PolicyNetworks, TrainState]:
+    """Train a policy; resumes from `workdir/ppo_checkpoint.pt` if a killed run left one.
+
+    The environments step on the CPU; the networks, the losses and GAE run on `device` (the CPU by
+    default): the collector moves each step's observation there and the action back."""
+    device = device or torch.device("cpu")
     torch.manual_seed(seed)
     env = make_env(config.num_envs, seed)
     agent_steps = env.config.agent_steps
-    nets = PolicyNetworks(env, config, trunk)
+    nets = PolicyNetworks(env, config, trunk).to(device)
     loss = ClipPPOLoss(nets.policy, nets.value, clip_epsilon=config.clip_epsilon, clip_value=config.clip_value,
                        entropy_coeff=config.entropy_coeff, critic_coeff=config.critic_coeff,
                        loss_critic_type="l2", normalize_advantage=True)
@@ -183,12 +189,14 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
     workdir.mkdir(parents=True, exist_ok=True)
     checkpoint = workdir / "ppo_checkpoint.pt"
     if checkpoint.exists():
-        state, rng = _load_checkpoint(checkpoint, nets, optimizer)
+        state, rng, cuda_rng = _load_checkpoint(checkpoint, nets, optimizer, device)
     collector = Collector(env, nets.policy, frames_per_batch=batch_steps,
                           total_frames=(total_batches - state.batch) * batch_steps, reset_at_each_iter=True,
-                          auto_register_policy_transforms=False)
+                          auto_register_policy_transforms=False, env_device="cpu", policy_device=device,
+                          storing_device=device)
     if rng is not None:  # after the collector's construction, which may draw from it
         torch.set_rng_state(rng)
+        restore_cuda_rng_state(cuda_rng)
     # Batch k's episodes start from initial states numbered k * episodes_per_batch, ... (see SuiteBatchEnv):
     # set before each rollout, whatever resets the collector made in between.
     env.episode_index = state.batch * config.episodes_per_batch
@@ -219,7 +227,7 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
 
 def _update(batch, loss: ClipPPOLoss, advantage: GAE, optimizer: torch.optim.Optimizer,
             config: PPOConfig) -> dict[str, float]:
-    batch = batch.clone()
+    batch = batch.clone()  # on the policy's device (the collector's storing_device)
     batch.set(("next", "reward"), batch.get(("next", "reward")) * config.reward_scale)
     with torch.no_grad():
         advantage(batch)
@@ -249,19 +257,19 @@ def _save_checkpoint(path: Path, nets: PolicyNetworks, optimizer: torch.optim.Op
     import io
 
     payload = {"nets": nets.state_dict(), "optimizer": optimizer.state_dict(), "state": asdict(state),
-               "torch_rng": torch.get_rng_state()}
+               "torch_rng": torch.get_rng_state(), "cuda_rng": cuda_rng_state()}
     buffer = io.BytesIO()
     torch.save(payload, buffer)
     atomic_write_bytes(path, buffer.getvalue())
 
 
-def _load_checkpoint(path: Path, nets: PolicyNetworks,
-                     optimizer: torch.optim.Optimizer) -> tuple[TrainState, torch.Tensor]:
+def _load_checkpoint(path: Path, nets: PolicyNetworks, optimizer: torch.optim.Optimizer,
+                     device: torch.device) -> tuple[TrainState, torch.Tensor, list[torch.Tensor]]:
     try:
-        payload = torch.load(path, weights_only=True)
+        payload = torch.load(path, weights_only=True, map_location=device)
         nets.load_state_dict(payload["nets"])
         optimizer.load_state_dict(payload["optimizer"])
-        return TrainState(**payload["state"]), payload["torch_rng"]
+        return TrainState(**payload["state"]), payload["torch_rng"].cpu(), payload.get("cuda_rng", [])
     except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint gets the same one-line answer
         raise TrainingError(f"PPO checkpoint {path} cannot be read ({type(exc).__name__}); delete it or rerun "
                             f"with --force to train from the start") from None
@@ -269,14 +277,15 @@ def _load_checkpoint(path: Path, nets: PolicyNetworks,
 
 @torch.no_grad()
 def evaluate_policy(make_env: EnvFactory, nets: PolicyNetworks, episodes: int,
-                    num_envs: int, seed: int) -> np.ndarray:
+                    num_envs: int, seed: int, device: torch.device | None = None) -> np.ndarray:
     """Returns of `episodes` test episodes with the policy's deterministic (mean) action, on environments
-    seeded apart from training."""
+    seeded apart from training; the policy runs on `device` (where `nets` are), the environments on the CPU."""
     eval_env = make_env(num_envs, seed + 1_000_003)
     steps = eval_env.config.agent_steps
     returns: list[float] = []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         while len(returns) < episodes:
-            rollout = eval_env.rollout(steps, nets.policy, break_when_any_done=False)
+            rollout = eval_env.rollout(steps, nets.policy, break_when_any_done=False,
+                                       auto_cast_to_device=device is not None and device.type != "cpu")
             returns.extend(rollout.get(("next", "reward")).sum(dim=(1, 2)).double().tolist())
     return np.asarray(returns[:episodes])

@@ -6,7 +6,8 @@ the harness relies on and a wrong implementation would get past silently: the sp
 satisfies `Encoder`, its metadata matches the spec, a short fit returns statistics, embeddings have the
 right shape, dtype and finite values, `embed_episode` and the rollout path (`streaming`, or the clip window
 over `embed`) give `embed`'s embeddings of the same clips (within `TOLERANCE`), a second instance with the
-same seed gives the same embeddings, and a save / load round trip keeps them. One line per check.
+same seed gives the same embeddings, a save / load round trip keeps them, and (`--device`) the saved
+encoder placed on a device (`to_device`) embeds as on the CPU. One line per check.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from mftcn_bench.core.device import DevicePlaced, resolve_device
 from mftcn_bench.core.home import BenchHome
 from mftcn_bench.data.dataset import MultiViewDataset, ensure_dataset
 from mftcn_bench.data.synthetic import synthetic_collector
@@ -39,6 +41,7 @@ from mftcn_bench.run.runner import PreparedRun, RunRequest, attach_feature_cache
 # Two paths to the same embedding may differ by TOLERANCE times the embeddings' largest magnitude (at least
 # 1): batch size changes the order of float32 sums in convolutions.
 TOLERANCE = 1e-5
+DEVICE_TOLERANCE = 1e-3  # a GPU against the CPU: other kernels (TF32 convolutions included)
 TASK, PRESET = "cartpole-probe", "smoke"  # the dataset shape and the encoder's (small) training budget
 
 
@@ -62,10 +65,10 @@ def _max_diff(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.max(np.abs(a.astype(np.float64) - b.astype(np.float64)))) if a.size else 0.0
 
 
-def _same(a: np.ndarray, b: np.ndarray, what: str) -> str:
+def _same(a: np.ndarray, b: np.ndarray, what: str, tolerance: float = TOLERANCE) -> str:
     if a.shape != b.shape:
         raise _Failed(f"{what}: shapes {a.shape} and {b.shape} differ")
-    diff, bound = _max_diff(a, b), TOLERANCE * max(1.0, float(np.max(np.abs(b), initial=0.0)))
+    diff, bound = _max_diff(a, b), tolerance * max(1.0, float(np.max(np.abs(b), initial=0.0)))
     if not diff <= bound:
         raise _Failed(f"{what}: max |difference| {diff:.3g} > {bound:.3g}")
     return f"{what}: max |difference| {diff:.2g} (allowed {bound:.2g})"
@@ -74,9 +77,11 @@ def _same(a: np.ndarray, b: np.ndarray, what: str) -> str:
 class EncoderCheck:
     """The checks of one registered encoder, run in order in a scratch folder."""
 
-    def __init__(self, name: str, workdir: Path, overrides: Sequence[tuple[str, Any]] = ()) -> None:
+    def __init__(self, name: str, workdir: Path, overrides: Sequence[tuple[str, Any]] = (),
+                 device: str = "cpu") -> None:
         self.name, self.workdir = name, workdir
         self.overrides = tuple(overrides)
+        self.placement = resolve_device(device)  # refused (one line) before any check runs
         self.home = BenchHome(workdir / "home")
         self.prepared: PreparedRun | None = None
         self.dataset: MultiViewDataset | None = None
@@ -111,7 +116,7 @@ class EncoderCheck:
     # -- the checks, in order ---------------------------------------------------------------------------
 
     def spec(self) -> str:
-        self.prepared = prepare(RunRequest(self.name, TASK, PRESET, 0, self.overrides))
+        self.prepared = prepare(RunRequest(self.name, TASK, PRESET, 0, self.overrides, device="cpu"))
         config = {**self.prepared.task.dataset_config, "name": "conformance", "pattern": "gradient"}
         self.dataset = ensure_dataset(self.home.datasets, config, synthetic_collector, show_progress=False)
         entry = self.prepared.encoder_entry
@@ -206,11 +211,25 @@ class EncoderCheck:
         return _same(embed_clips_of_episode(loaded, frames, state),
                      embed_clips_of_episode(self.encoder, frames, state), "loaded vs saved")
 
+    def device(self) -> str:
+        """The saved encoder placed on the check's device embeds as on the CPU (a GPU sums in other orders)."""
+        assert self.encoder is not None
+        placed = self._new()
+        if not isinstance(placed, DevicePlaced):
+            return f"no to_device: runs on the CPU whatever --device asks ({self.placement.device} asked)"
+        placed.to_device(self.placement.torch_device)
+        placed.load(self.workdir / "saved" / "model.pt")
+        attach_feature_cache(placed, self.dataset, self.home, show_progress=False)
+        frames, state = self._episodes()[0]
+        return _same(embed_clips_of_episode(placed, frames, state), embed_clips_of_episode(self.encoder, frames, state),
+                     f"to_device({self.placement.device}) vs the CPU",
+                     DEVICE_TOLERANCE if self.placement.is_cuda else TOLERANCE)
+
     def run(self) -> Iterator[CheckLine]:
         checks: list[tuple[str, Callable[[], str]]] = [
             ("spec", self.spec), ("construct", self.construct), ("metadata", self.metadata), ("fit", self.fit),
             ("embed", self.embed), ("embed_episode", self.embed_episode), ("streaming", self.streaming),
-            ("determinism", self.determinism), ("save-load", self.save_load)]
+            ("determinism", self.determinism), ("save-load", self.save_load), ("device", self.device)]
         blocked = None
         for name, check in checks:
             if blocked is not None:
@@ -229,10 +248,11 @@ class EncoderCheck:
 
 
 def check_encoder(name: str, overrides: Sequence[tuple[str, Any]] = (),
-                  workdir: Path | None = None) -> Iterator[CheckLine]:
-    """The check lines of encoder `name`, computed in `workdir` (a temporary folder when None)."""
+                  workdir: Path | None = None, device: str = "cpu") -> Iterator[CheckLine]:
+    """The check lines of encoder `name`, computed in `workdir` (a temporary folder when None); the
+    `device` check places it on `device`."""
     if workdir is not None:
-        yield from EncoderCheck(name, workdir, overrides).run()
+        yield from EncoderCheck(name, workdir, overrides, device).run()
         return
     with tempfile.TemporaryDirectory(prefix="mftcn-check-") as tmp:
-        yield from EncoderCheck(name, Path(tmp), overrides).run()
+        yield from EncoderCheck(name, Path(tmp), overrides, device).run()

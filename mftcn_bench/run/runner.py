@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from mftcn_bench.core import identity, registry
+from mftcn_bench.core.device import CPU, DevicePlaced, Placement, apply_determinism, resolve_device
 from mftcn_bench.core.errors import BenchError, BenchWarning, SpecError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.core.home import BenchHome
@@ -33,6 +34,7 @@ from mftcn_bench.encoders.base import Encoder, FeatureCacheUser, FitBudget, Mult
 from mftcn_bench.encoders.bases import FrozenBase
 from mftcn_bench.encoders.feature_cache import ensure_feature_cache
 from mftcn_bench.results.store import ResultStore, RunRecord
+from mftcn_bench.sim.rendering import follow_device
 from mftcn_bench.tasks.base import NeedsArtifacts, Task
 
 
@@ -46,6 +48,8 @@ class RunRequest:
     seed: int = 0
     overrides: Sequence[tuple[str, Any]] = field(default_factory=tuple)
     force: bool = False
+    device: str = "auto"          # auto, cpu, cuda or cuda:N (`core.device`)
+    deterministic: bool = False   # torch's deterministic algorithms (`core.device.apply_determinism`)
 
 
 @dataclass(frozen=True)
@@ -67,25 +71,29 @@ class PreparedRun:
     task: Task
     code: identity.RunCode
     needs_fit: bool = True  # asked of the untrained encoder built in `prepare` (True when none was built)
+    placement: Placement = CPU  # the device the run computes on, resolved in `prepare`
 
 
 def run_id_of(prepared: PreparedRun, dataset_fingerprint: str) -> str:
     """The id of `prepared` on the dataset with `dataset_fingerprint`."""
     return identity.run_id(prepared.config, prepared.preset, prepared.request.seed, dataset_fingerprint,
-                           prepared.code)
+                           prepared.code, prepared.placement.identity())
 
 
 def encoder_key_of(prepared: PreparedRun, dataset_fingerprint: str,
                    base_identity: Mapping[str, Any] | None = None) -> str:
     """The key of the trained encoder that `prepared` fits or reuses."""
     return identity.encoder_fit_key(prepared.config["encoder"], dataset_fingerprint, prepared.request.seed,
-                                    prepared.code.encoder, base_identity)
+                                    prepared.code.encoder, base_identity, prepared.placement.identity())
 
 
 def prepare(request: RunRequest) -> PreparedRun:
     """Resolve names, preset and overrides; build the task. Fails fast on bad input, before any work."""
     if request.seed < 0:
         raise BenchError(f"seed must be a non-negative integer, got {request.seed}")
+    placement = resolve_device(request.device, request.deterministic)
+    apply_determinism(placement)
+    follow_device(placement.device)  # before anything renders
     encoder_entry = registry.get("encoders", request.encoder)
     task_entry = registry.get("tasks", request.task)
     preset, config = resolve_config(encoder_entry.spec, task_entry.spec, request.preset, request.overrides)
@@ -95,6 +103,8 @@ def prepare(request: RunRequest) -> PreparedRun:
     if not isinstance(task, Task):
         raise BenchError(f"task {request.task!r} ({task_entry.entry_point.value}) does not implement the Task "
                          f"protocol (dataset_config, collector, evaluate, table)")
+    if isinstance(task, DevicePlaced):
+        task.to_device(placement.torch_device)
     dataset_config = task.dataset_config
     needs_fit = True
     if isinstance(dataset_config, Mapping):  # sizes that cannot work are refused before collecting anything
@@ -107,7 +117,7 @@ def prepare(request: RunRequest) -> PreparedRun:
                             f"encoder with lookback <= {length} or set task.dataset.episode_length >= "
                             f"{spec.lookback}")
     return PreparedRun(request, preset, config, encoder_entry, task, identity.run_code(encoder_class, task),
-                       needs_fit)
+                       needs_fit, placement)
 
 
 def prepare_dataset(prepared: PreparedRun, home: BenchHome, show_progress: bool = True) -> MultiViewDataset:
@@ -146,13 +156,15 @@ def frozen_base_of(encoder: Encoder) -> FrozenBase | None:
 
 
 def attach_feature_cache(encoder: Encoder, dataset: MultiViewDataset, home: BenchHome,
-                         show_progress: bool = True) -> dict[str, Any] | None:
-    """Build (or find) the per-frame feature cache of the encoder's frozen base on `dataset` and hand it to
-    the encoder; returns what the run records about it (None: the encoder has no frozen base)."""
+                         show_progress: bool = True, placement: Placement = CPU) -> dict[str, Any] | None:
+    """Build (or find) the per-frame feature cache of the encoder's frozen base on `dataset` (the base runs
+    where the encoder was placed) and hand it to the encoder; returns what the run records about it (None:
+    the encoder has no frozen base)."""
     base = frozen_base_of(encoder)
     if base is None or not isinstance(encoder, FeatureCacheUser):
         return None
-    cache = ensure_feature_cache(home.features, dataset, base, base.identity(), show_progress=show_progress)
+    cache = ensure_feature_cache(home.features, dataset, base, base.identity(), show_progress=show_progress,
+                                 placement=placement)
     encoder.use_feature_cache(cache)
     return {**cache.summary(), "base": base.identity()}
 
@@ -184,23 +196,40 @@ def _check_views(entry: registry.Entry, encoder_config: Mapping[str, Any], seed:
     return bool(encoder.needs_fit)
 
 
+def place_encoder(encoder: Encoder, placement: Placement) -> Placement:
+    """Move the encoder to the run's device when it can (`DevicePlaced`); returns where it computes: an
+    encoder without `to_device` stays on the CPU."""
+    if isinstance(encoder, DevicePlaced):
+        encoder.to_device(placement.torch_device)
+        return placement
+    return CPU
+
+
 def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
                   show_progress: bool = True) -> tuple[Encoder, dict[str, Any]]:
-    """The encoder for this run, fitted on `dataset` or loaded from the shared checkpoint."""
+    """The encoder for this run, placed on the run's device, fitted on `dataset` or loaded from the shared
+    checkpoint."""
     spec = encoder_spec_from_config(prepared.encoder_entry.description, prepared.config["encoder"])
     encoder = construct_encoder(prepared.encoder_entry, prepared.config["encoder"], prepared.request.seed,
                                 dataset.image_shape)
+    placement = place_encoder(encoder, prepared.placement)
+    placed = {"device": placement.device}
     base = frozen_base_of(encoder)
+
+    def attach() -> dict[str, Any] | None:
+        return attach_feature_cache(encoder, dataset, home, show_progress, placement)
+
     if not encoder.needs_fit:
-        cache = attach_feature_cache(encoder, dataset, home, show_progress)
-        return encoder, {"fitted": False, "reused": False, **({} if cache is None else {"feature_cache": cache})}
+        cache = attach()
+        return encoder, {"fitted": False, "reused": False, **placed,
+                         **({} if cache is None else {"feature_cache": cache})}
     workdir = encoder_workdir(prepared, dataset, home, None if base is None else base.identity())
     with exclusive_lock(home.encoders / f".{workdir.name}.lock"):  # concurrent runs fit it once
         # A stored checkpoint is loaded (and refused if it cannot be) before the cache is built.
         fit = _fit_or_load(encoder, spec, dataset, workdir, prepared.request.force, show_progress,
-                           before_fit=lambda: attach_feature_cache(encoder, dataset, home, show_progress))
-    cache = attach_feature_cache(encoder, dataset, home, show_progress)  # found, if the fit built it
-    return encoder, {**fit, **({} if cache is None else {"feature_cache": cache})}
+                           before_fit=attach)
+    cache = attach()  # found, if the fit built it
+    return encoder, {**fit, **placed, **({} if cache is None else {"feature_cache": cache})}
 
 
 def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset, workdir: Path, force: bool,
@@ -257,6 +286,8 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
                           existing.config.get("notes", []))
     encoder, fit = build_encoder(prepared, dataset, home, show_progress)
     after_fit = time.monotonic()
+    placement_notes = [] if fit["device"] == prepared.placement.device else [
+        f"encoder {request.encoder!r} has no to_device: it ran on the CPU, the task on {prepared.placement.device}"]
     # A forced rerun computes from scratch in a folder of its own; a first run keeps its folder, so a
     # killed evaluation resumes from its checkpoints there.
     run_dir = home.runs / (f".{run_id}.rerun" if existing is not None else run_id)
@@ -289,7 +320,8 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
         seed=request.seed, dataset_id=dataset.fingerprint,
         config={**prepared.config, "preset": prepared.preset, "seed": request.seed,
                 "encoder_info": asdict(encoder.info), "code": prepared.code.as_dict(), "fit": fit,
-                "notes": result.notes, "dataset_path": str(dataset.root),
+                "notes": [*result.notes, *placement_notes], "dataset_path": str(dataset.root),
+                "device": prepared.placement.record(),
                 **({"rerun_of": run_id} if record_id != run_id else {})},
         versions=versions(), metrics=result.metrics,
         timings={"dataset_s": after_data - began, "fit_s": after_fit - after_data,
@@ -308,4 +340,4 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
         for folder in {run_dir, final_dir}:  # a result is in the store with its folder, or nowhere
             shutil.rmtree(folder, ignore_errors=True)
         raise
-    return RunOutcome(record, False, prepared.task.table(result.metrics), result.notes)
+    return RunOutcome(record, False, prepared.task.table(result.metrics), [*result.notes, *placement_notes])

@@ -9,6 +9,7 @@ from __future__ import annotations
 import ctypes.util
 import os
 from collections.abc import Sequence
+from functools import cache
 
 import numpy as np
 
@@ -18,6 +19,35 @@ GL_PACKAGES = {
     "egl": ("EGL", "apt-get install -y libegl1 libgl1 libegl-mesa0 libgles2 libgl1-mesa-dri"),
     "osmesa": ("OSMesa", "apt-get install -y libosmesa6"),
 }
+
+
+@cache
+def gl_renderer() -> str:
+    """The GL vendor, renderer and version strings that MuJoCo renders with here (for example
+    "Mesa/X.org | llvmpipe (LLVM 15.0.6, 256 bits) | 4.5 (Compatibility Profile) Mesa 22.3.6"), or why
+    there is none; one small offscreen context, once per process."""
+    try:
+        ensure_gl()
+        import mujoco
+
+        context = mujoco.GLContext(8, 8)
+        try:
+            context.make_current()
+            from OpenGL import GL
+
+            parts = [GL.glGetString(name) for name in (GL.GL_VENDOR, GL.GL_RENDERER, GL.GL_VERSION)]
+        finally:
+            context.free()
+        return " | ".join((part or b"?").decode(errors="replace") for part in parts)
+    except Exception as exc:  # noqa: BLE001 - no GL here: datasets that render fail later with their own line
+        return f"unavailable ({type(exc).__name__})"
+
+
+def follow_device(device: str) -> None:
+    """On a GPU run with EGL, render on that GPU: MUJOCO_EGL_DEVICE_ID follows `cuda:N` unless it is set
+    (it must be set before MuJoCo makes its first EGL context)."""
+    if device.startswith("cuda") and os.environ.get("MUJOCO_GL", "egl") == "egl":
+        os.environ.setdefault("MUJOCO_EGL_DEVICE_ID", device.partition(":")[2] or "0")
 
 
 def ensure_gl() -> str:

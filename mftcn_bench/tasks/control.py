@@ -58,6 +58,7 @@ class ControlTask:
 
     def __init__(self, config: Mapping[str, Any], seed: int) -> None:
         self.config, self.seed = config, seed
+        self.device = torch.device("cpu")
         dataset = config["dataset"]
         seen_as = {"height": dataset["height"], "width": dataset["width"], **dataset["render"]}
         self.env_config = _table(SuiteConfig, config["name"], "env", {**config["env"], **seen_as})
@@ -70,6 +71,12 @@ class ControlTask:
         if self.env_config.camera not in dataset["cameras"]:
             raise SpecError(f"task {config['name']!r}: [env] camera {self.env_config.camera!r} is not one of the "
                             f"dataset's cameras {', '.join(dataset['cameras'])}")
+
+    def to_device(self, device: torch.device) -> None:
+        """PPO's networks, losses and GAE run on `device` (`core.device.DevicePlaced`); environments and
+        rendering stay on the CPU. (The cheetah expert trains on the CPU whatever the device: a 2x256 MLP
+        on state gains nothing from a GPU, and its demonstrations then key one dataset for every device.)"""
+        self.device = torch.device(device)
 
     @property
     def dataset_config(self) -> Mapping[str, Any]:
@@ -105,11 +112,11 @@ class ControlTask:
             bar.refresh()
 
         try:
-            nets, state = train_ppo(make_env, self.ppo, self.seed, workdir, progress, trunk)
+            nets, state = train_ppo(make_env, self.ppo, self.seed, workdir, progress, trunk, self.device)
         finally:
             bar.close()
         returns = evaluate_policy(make_env, nets, self.ppo.eval_episodes,
-                                  min(self.ppo.num_envs, self.ppo.eval_episodes), self.seed)
+                                  min(self.ppo.num_envs, self.ppo.eval_episodes), self.seed, self.device)
         curves = {"train": {"frames": state.curve_frames, "wall_s": state.curve_wall_s,
                             "return": state.curve_return},
                   "test": {"episode": [float(i) for i in range(len(returns))], "return": returns.tolist()}}
