@@ -20,9 +20,10 @@ def random_state(seed=0, dim=5, model=None):
     return RandomStateEncoder(spec, image_shape=(8, 12), seed=seed)
 
 
-def true_state(dim=5, frames=1):
-    spec = EncoderSpec("true-state", "baseline", "test", frames, 1, dim, {}, {"steps": 0})
-    return TrueStateEncoder(spec, image_shape=(8, 12), seed=0)
+def true_state(dim=5, frames=1, noise=None, seed=0):
+    model = {} if noise is None else {"noise_std": noise}
+    spec = EncoderSpec("true-state", "baseline", "test", frames, 1, dim, model, {"steps": 0})
+    return TrueStateEncoder(spec, image_shape=(8, 12), seed=seed)
 
 
 def pixels(frames=1, seed=0, dim=6):
@@ -97,6 +98,25 @@ def test_true_state_through_episode_embedding_uses_each_frames_state():
     out = embed_episode(true_state(), clips(7)[:, 0], state)
     assert np.allclose(out[:, 0], np.linspace(0, 1, 7)) and np.allclose(out[:, 4], np.arange(7))
     assert np.allclose(out[:, 2], 1.0)  # cos 0
+
+
+def test_true_state_noise_has_its_std_per_dimension_and_streams_as_it_embeds():
+    rng = np.random.default_rng(0)
+    state = rng.normal(size=(4000, 1, 4))
+    std = [0.1, 0.0, 0.5, 1.0, 2.0]
+    clean = true_state().embed(ClipBatch(clips(4000, shape=(1, 1)), state))
+    noisy = true_state(noise=std).embed(ClipBatch(clips(4000, shape=(1, 1)), state))
+    assert np.allclose((noisy - clean).std(axis=0), std, rtol=0.05, atol=1e-7)
+    assert abs((noisy - clean).mean()) < 0.05
+    encoder = true_state(noise=std)
+    pushed = encoder.streaming(4000).push(None, np.ones(4000, bool), state[:, -1])
+    assert np.array_equal(pushed, noisy)  # the same noise for the same state, batch or rollout
+    assert not np.allclose(true_state(noise=std, seed=1).embed(ClipBatch(clips(4000, shape=(1, 1)), state)), noisy)
+    assert np.array_equal(true_state(noise=[0.0] * 5).embed(ClipBatch(clips(4000, shape=(1, 1)), state)), clean)
+    with pytest.raises(SpecError, match="one value per embedding dimension"):
+        true_state(noise=[0.1, 0.2])
+    with pytest.raises(SpecError, match="finite numbers >= 0"):
+        true_state(noise=[0.1, -1, 0, 0, 0])
 
 
 def test_pixels_cnn_is_an_untrained_seeded_network():

@@ -74,3 +74,39 @@ def test_renders_only_the_frames_a_clip_can_reach():
     td.set("action", torch.zeros(2, 1))
     env.step(td)
     assert [p[0] for p in blind.pushes] == [None, None]  # no rendering; one observation a step
+
+
+def test_embedding_difference_is_the_change_since_the_previous_simulator_frame():
+    from dataclasses import replace
+
+    from mftcn_bench.encoders.baselines import state_embedding
+
+    config = replace(CONFIG, embedding_difference=True)
+    env = SuiteBatchEnv(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
+    check_env_specs(env)
+    from dm_control import suite
+
+    td = env.reset()
+    assert td.get("observation").shape == (2, 10) and torch.all(td.get("observation")[:, 5:] == 0)
+    for _ in range(3):
+        start = env._envs[0].physics.get_state().copy()
+        td.set("action", torch.full((2, 1), 0.7))
+        td = env.step(td)["next"]
+        obs = td.get("observation").numpy()
+        now = np.stack([np.concatenate([e.physics.data.qpos, e.physics.data.qvel]) for e in env._envs])
+        assert np.allclose(obs[:, :5], state_embedding(now), atol=1e-5)
+        plain = suite.load("cartpole", "swingup")  # the same physics, one step short of the repeat
+        plain.reset()
+        with plain.physics.reset_context():
+            plain.physics.set_state(start)
+        for _ in range(config.action_repeat - 1):
+            plain.step(np.array([0.7]))
+        earlier = np.concatenate([plain.physics.data.qpos, plain.physics.data.qvel])[None]
+        assert np.allclose(obs[0, :5] - obs[0, 5:], state_embedding(earlier)[0], atol=1e-5)
+    counting = CountingObserver()
+    env = SuiteBatchEnv(config, 2, seed=0, observer=counting, embedding_dim=4, observer_uses_pixels=True, lookback=1)
+    td = env.reset()
+    td.set("action", torch.zeros(2, 1))
+    env.step(td)
+    # lookback 1 renders the last two frames of the repeat, and embeds both
+    assert [p[2] for p in counting.pushes] == ["push", "push", "push"]

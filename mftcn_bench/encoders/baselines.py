@@ -7,7 +7,10 @@
   moment get unrelated noise (a hash of the shared state would make them align perfectly).
 - `TrueStateEncoder` (`true-state`): the simulator state of the clip's last frame. A 4-column cartpole
   state (x, theta, x_dot, theta_dot) is mapped like the probe's targets, to (x, sin theta, cos theta,
-  x_dot, theta_dot); any other state is returned as it is.
+  x_dot, theta_dot); any other state is returned as it is. `[model] noise_std` (one per embedding
+  dimension; empty: none) adds Gaussian noise of that size, drawn from (seed, the state's bytes) so that
+  `embed` and a rollout give a state the same noise: PPO on true state blurred to a given precision (for
+  example a probe's residual) bounds what an embedding of that precision allows.
 - `PixelsCNNEncoder` (`pixels-cnn`): the mfTCN base CNN on each frame of the clip, spatial average, the
   clip's n averaged feature vectors concatenated (oldest first), one linear layer to the embedding. There
   is no training signal outside control tasks, so it is not fitted: a randomly initialised network from
@@ -18,7 +21,7 @@
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -109,8 +112,26 @@ class RandomStateEncoder(SpecEncoder):
 
 
 @dataclass(frozen=True)
-class EmptyModelConfig:
-    """A `[model]` table that must stay empty."""
+class TrueStateModelConfig:
+    """The `[model]` table of `true-state`: optional per-dimension noise."""
+
+    noise_std: list[float] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if any(not (np.isfinite(s) and s >= 0) for s in self.noise_std):
+            raise SpecError(f"true-state [model]: noise_std must be finite numbers >= 0, got {self.noise_std}")
+
+
+def state_noise(state: np.ndarray, seed: int, std: np.ndarray) -> np.ndarray:
+    """float32 [B, D] Gaussian noise of per-dimension `std` [D] for states [B, S]: row b depends only on
+    (seed, the bytes of state b as float64)."""
+    rows = np.ascontiguousarray(np.asarray(state, dtype=np.float64))
+    out = np.empty((len(rows), len(std)), np.float32)
+    for i, row in enumerate(rows):
+        digest = hashlib.blake2b(row.tobytes(), digest_size=8).digest()
+        rng = np.random.default_rng([seed, int.from_bytes(digest, "little")])
+        out[i] = rng.standard_normal(len(std)) * std
+    return out
 
 
 def state_embedding(state: np.ndarray) -> np.ndarray:
@@ -128,7 +149,11 @@ class TrueStateEncoder(SpecEncoder):
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         super().__init__(spec, image_shape, seed)
-        parse_table(EmptyModelConfig, spec.name, "model", spec.model)
+        config = parse_table(TrueStateModelConfig, spec.name, "model", spec.model)
+        if config.noise_std and len(config.noise_std) != spec.embedding_dim:
+            raise SpecError(f"encoder {spec.name!r}: [model] noise_std needs one value per embedding dimension "
+                            f"({spec.embedding_dim}), got {len(config.noise_std)}")
+        self.noise_std = np.asarray(config.noise_std, dtype=np.float64)
         parse_table(NoTrainConfig, spec.name, "train", spec.train)
 
     def embed(self, clips: ClipBatch) -> np.ndarray:
@@ -154,6 +179,8 @@ class TrueStateEncoder(SpecEncoder):
             raise SpecError(f"{self.spec.name}: the task's state gives {out.shape[1]} values per frame but "
                             f"embedding_dim is {self.spec.embedding_dim}; set encoder.embedding_dim="
                             f"{out.shape[1]}")
+        if self.noise_std.size:
+            out += state_noise(state, self.seed, self.noise_std)
         return out
 
     def save(self, path: Path) -> None:

@@ -11,7 +11,9 @@ on the suite's 1000-step scale). The policy's input is an observer's output (`ob
 frozen encoder's embedding of the clip ending at the current frame. Frames are rendered only when the
 encoder reads pixels, and then only the physics steps a clip can reach: the last min(lookback,
 action_repeat) of each repeat, so a clip sees consecutive simulator frames exactly as in the encoder's
-training data. For an encoder trained jointly with the policy (pixels-cnn) the environment emits the raw
+training data. With `embedding_difference` the observation is [e_t, e_t - e_{t-1}], e_{t-1} the embedding
+of the simulator frame before (0 difference at an episode's first frame, as the probe's clamping). For an
+encoder trained jointly with the policy (pixels-cnn) the environment emits the raw
 clip ("pixels", uint8 [E, n, 3, H, W]) instead.
 """
 
@@ -46,6 +48,9 @@ class SuiteConfig:
     action_repeat: int
     shadowsize: int = 16
     offsamples: int = 0
+    # The policy sees [e_t, e_t - e_{t-1}] (the probe's input; e_{t-1}: the embedding of the previous
+    # simulator frame, inside the action repeat) instead of e_t alone.
+    embedding_difference: bool = False
 
     def __post_init__(self) -> None:
         if self.action_repeat < 1 or self.episode_length % self.action_repeat:
@@ -118,10 +123,18 @@ class SuiteBatchEnv(EnvBase):
             self._window = ClipRing(pixel_clip.frames, pixel_clip.stride, num_envs)
             lookback = self._window.lookback
         self.lookback = lookback
-        self.render_steps = min(lookback, config.action_repeat) if self._renders else 0
+        if config.embedding_difference and pixel_clip is not None:
+            raise SpecError("[env] embedding_difference needs an encoder's embedding; an encoder trained with "
+                            "the policy (pixels-cnn) gives the policy raw clips")
+        self._embedded_steps = 2 if config.embedding_difference and config.action_repeat > 1 else 1
+        reach = max(lookback, self._embedded_steps)
+        self.render_steps = min(reach, config.action_repeat) if self._renders else 0
+        self._previous: np.ndarray | None = None  # e_{t-1} from inside the action repeat
+        self._last: np.ndarray | None = None      # the last agent step's embedding (e_{t-1} at action repeat 1)
         self._t = 0
         action_dim = int(self._envs[0].action_spec().shape[0])
-        obs_spec = (Unbounded(shape=(num_envs, embedding_dim), dtype=torch.float32) if pixel_clip is None else
+        width = embedding_dim * (2 if config.embedding_difference else 1)
+        obs_spec = (Unbounded(shape=(num_envs, width), dtype=torch.float32) if pixel_clip is None else
                     Bounded(0, 255, shape=(num_envs, pixel_clip.frames, 3, config.height, config.width),
                             dtype=torch.uint8))
         self._obs_key = "observation" if pixel_clip is None else "pixels"
@@ -151,7 +164,17 @@ class SuiteBatchEnv(EnvBase):
         if not embed:
             self.observer.observe(frames, starts, self._state())
             return None
-        return torch.from_numpy(self.observer.push(frames, starts, self._state()))
+        out = self.observer.push(frames, starts, self._state())
+        if not self.config.embedding_difference:
+            return torch.from_numpy(out)
+        previous = out if start else self._previous if self._previous is not None else self._last
+        self._previous, self._last = None, out
+        return torch.from_numpy(np.concatenate([out, out - previous], axis=1))
+
+    def _remember(self) -> None:
+        """Embed the frame before an agent step's last one: e_{t-1} of the difference."""
+        frames = self._frames()
+        self._previous = self.observer.push(frames, np.zeros(self.num_envs, bool), self._state())
 
     # -- torchrl EnvBase ------------------------------------------------------------------------------
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -180,6 +203,8 @@ class SuiteBatchEnv(EnvBase):
                 reward[i] += step_reward(env, action[i])
             if r == repeat - 1:
                 obs = self._observe(start=False)
+            elif r == repeat - 2 and self._embedded_steps == 2:
+                self._remember()
             elif r >= repeat - self.render_steps:
                 self._observe(start=False, embed=False)
         self._t += 1
