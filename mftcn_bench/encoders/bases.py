@@ -113,8 +113,8 @@ class SmallCNN(nn.Module):
         x = _resized(to_unit_range(images), self.resize)
         if self.coords:
             n, _, h, w = x.shape
-            ys = torch.linspace(-1.0, 1.0, h).view(1, 1, h, 1).expand(n, 1, h, w)
-            xs = torch.linspace(-1.0, 1.0, w).view(1, 1, 1, w).expand(n, 1, h, w)
+            ys = torch.linspace(-1.0, 1.0, h, device=x.device).view(1, 1, h, 1).expand(n, 1, h, w)
+            xs = torch.linspace(-1.0, 1.0, w, device=x.device).view(1, 1, 1, w).expand(n, 1, h, w)
             x = torch.cat([x, xs, ys], dim=1)
         return self.layers(x)
 

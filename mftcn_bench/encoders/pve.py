@@ -90,7 +90,7 @@ def controllability_loss(action: torch.Tensor, acc: torch.Tensor) -> torch.Tenso
     """sum_i exp(-|Cov(a_{j(i)}, acc_i)|) for actions [N, A] and accelerations [N, P], j(i) = i mod A;
     the covariance is the biased batch estimate (mean of products of centred values)."""
     action = action.to(acc.dtype)
-    pairs = torch.arange(acc.shape[1]) % action.shape[1]
+    pairs = torch.arange(acc.shape[1], device=acc.device) % action.shape[1]
     centred_a = action[:, pairs] - action[:, pairs].mean(dim=0)
     centred_acc = acc - acc.mean(dim=0)
     cov = (centred_a * centred_acc).mean(dim=0)
