@@ -28,11 +28,27 @@ def _data(tmp_path):
                           show_progress=False)
 
 
+# mftcn5's training at a size 40-frame synthetic episodes can hold (as the smoke preset's).
+SMALL_TRAIN = {"batch_timesteps": 8, "episodes_per_batch": 2, "alpha": 4, "episode_pool": 3, "checkpoint_every": 1}
+
+
 def _mftcn(seed: int = 0):
+    from dataclasses import replace
+
     from mftcn_bench.core.registry import get
 
     entry = get("encoders", "mftcn5")
-    return entry.load()(entry.spec, image_shape=(48, 96), seed=seed)
+    spec = replace(entry.spec, train={**entry.spec.train, **SMALL_TRAIN})
+    return entry.load()(spec, image_shape=(48, 96), seed=seed)
+
+
+@pytest.fixture(autouse=True)
+def full_float32():
+    """GPU against CPU in full float32: TF32 convolutions would round to 10 mantissa bits."""
+    from mftcn_bench.core.device import full_float32
+
+    with full_float32():
+        yield
 
 
 def test_resolve_names_the_gpu():
@@ -74,6 +90,13 @@ def test_training_on_the_gpu_follows_the_cpu_and_its_checkpoint_loads_on_the_cpu
     cpu.fit(data, FitBudget(3), lambda s, t, st: losses["cpu"].append(st["loss"]), tmp_path / "c")
     gpu.fit(data, FitBudget(3), lambda s, t, st: losses["gpu"].append(st["loss"]), tmp_path / "g")
     assert np.allclose(losses["cpu"], losses["gpu"], atol=1e-3)
+    # A killed GPU fit resumes from its checkpoint (CUDA random state restored from CUDA tensors).
+    resumed = _mftcn()
+    resumed.to_device(CUDA)
+    resumed.fit(data, FitBudget(2), lambda *a: None, tmp_path / "r")  # leaves the step-1 checkpoint
+    again: list[float] = []
+    resumed.fit(data, FitBudget(3), lambda s, t, st: again.append(st["loss"]), tmp_path / "r")
+    assert np.allclose(again, losses["gpu"][1:], atol=1e-3)
     gpu.save(tmp_path / "m.pt")
     loaded = _mftcn(seed=1)
     loaded.load(tmp_path / "m.pt")  # onto the CPU: map_location

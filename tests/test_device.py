@@ -116,7 +116,8 @@ def test_training_checkpoints_keep_the_cuda_random_state_and_load_with_map_locat
     encoder.to_device(torch.device("cpu"))
     encoder.fit(data, FitBudget(3), lambda *a: None, tmp_path / "w")  # stops after the step-2 checkpoint
     state = torch.load(tmp_path / "w" / "train_checkpoint.pt", weights_only=True, map_location="cpu")
-    assert state["cuda_rng"] == devices.cuda_rng_state()  # empty without CUDA, one state per GPU with it
+    saved, now = state["cuda_rng"], devices.cuda_rng_state()  # empty without CUDA, one state per GPU with it
+    assert len(saved) == len(now) and all(torch.equal(a.cpu(), b) for a, b in zip(saved, now, strict=True))
     encoder.save(tmp_path / "m.pt")
     again = MfTCNEncoder(encoder.spec, image_shape=(16, 24), seed=1)
     again.load(tmp_path / "m.pt")

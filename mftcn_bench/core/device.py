@@ -2,16 +2,19 @@
 any work, and the capability by which encoders and tasks are placed on it.
 
 `auto` is CUDA when torch sees a GPU, else the CPU. A run records its `Placement` (device, GPU name, CUDA
-and cuDNN versions, whether deterministic algorithms were asked for) and its identity holds the part that
-can change a number: the device kind and, on a GPU, the GPU's name, the CUDA version and the determinism
-flag (`cuda:0` and `cuda:1` of one machine are the same identity). Environments always step on the CPU;
-what is placed is the networks: encoder training and embedding, the feature cache's base passes, PPO.
+and cuDNN versions, whether deterministic algorithms were asked for) and, off the CPU, its identity holds
+the part that can change a number: the GPU's name, the CUDA version and the determinism flag (`cuda:0`
+and `cuda:1` of one machine are the same identity); a CPU placement adds nothing to an identity.
+Environments always step on the CPU; what is placed is the networks: encoder training and embedding, the
+feature cache's base passes, PPO.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
@@ -100,6 +103,22 @@ def apply_determinism(placement: Placement) -> None:
     torch.use_deterministic_algorithms(True)
     torch.backends.cudnn.benchmark = False
     torch.backends.cudnn.deterministic = True
+    # Full float32 too: TF32 (on by default for cuDNN convolutions) rounds to 10 mantissa bits.
+    torch.backends.cudnn.allow_tf32 = False
+    torch.backends.cuda.matmul.allow_tf32 = False
+
+
+@contextlib.contextmanager
+def full_float32() -> Iterator[None]:
+    """Within: no TF32 in cuDNN convolutions or CUDA matrix products (comparisons with the CPU)."""
+    import torch
+
+    saved = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
 
 
 @runtime_checkable
@@ -111,16 +130,19 @@ class DevicePlaced(Protocol):
 
 
 def cuda_rng_state() -> list[torch.Tensor]:
-    """The CUDA generators' states for a checkpoint (empty without CUDA)."""
+    """The CUDA generators' states for a checkpoint (empty when this process never used CUDA: asking
+    would start a CUDA context in a CPU run)."""
     import torch
 
-    return torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []
+    return torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else []
 
 
 def restore_cuda_rng_state(states: list[torch.Tensor] | None) -> None:
-    """Inverse of `cuda_rng_state`; a checkpoint from a machine with more (or no) GPUs restores what fits."""
+    """Inverse of `cuda_rng_state`; a checkpoint from a machine with more (or no) GPUs restores what fits.
+    (A checkpoint loaded with `map_location` onto a GPU holds the states as CUDA tensors; the setter takes
+    CPU ByteTensors.)"""
     import torch
 
     if states and torch.cuda.is_available():
         for index, state in enumerate(states[: torch.cuda.device_count()]):
-            torch.cuda.set_rng_state(state, index)
+            torch.cuda.set_rng_state(state.cpu(), index)

@@ -203,7 +203,7 @@ def encoder_fit_key(encoder_config: Mapping[str, Any], dataset_fingerprint: str,
                     encoder_code: CodeIdentity, base_identity: Mapping[str, Any] | None = None,
                     placement: Mapping[str, Any] | None = None) -> str:
     """A trained encoder: shared by every task whose dataset and encoder config are the same. `placement`
-    (`Placement.identity()`) enters only off the CPU, so CPU keys are those of runs made before devices."""
+    (`Placement.identity()`) enters only off the CPU: a CPU key holds no placement."""
     inputs: dict[str, Any] = {"encoder": dict(encoder_config), "dataset": dataset_fingerprint, "seed": seed}
     if base_identity is not None:
         inputs["base"] = dict(base_identity)

@@ -81,10 +81,12 @@ def run_id_of(prepared: PreparedRun, dataset_fingerprint: str) -> str:
 
 
 def encoder_key_of(prepared: PreparedRun, dataset_fingerprint: str,
-                   base_identity: Mapping[str, Any] | None = None) -> str:
-    """The key of the trained encoder that `prepared` fits or reuses."""
+                   base_identity: Mapping[str, Any] | None = None, placement: Placement | None = None) -> str:
+    """The key of the trained encoder that `prepared` fits or reuses: on `placement`, where it trains (by
+    default the run's; the CPU for an encoder that cannot move, see `place_encoder`)."""
+    where = prepared.placement if placement is None else placement
     return identity.encoder_fit_key(prepared.config["encoder"], dataset_fingerprint, prepared.request.seed,
-                                    prepared.code.encoder, base_identity, prepared.placement.identity())
+                                    prepared.code.encoder, base_identity, where.identity())
 
 
 def prepare(request: RunRequest) -> PreparedRun:
@@ -143,10 +145,10 @@ def _progress_bar(name: str, enabled: bool):
 
 
 def encoder_workdir(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
-                    base_identity: Mapping[str, Any] | None = None) -> Path:
+                    base_identity: Mapping[str, Any] | None = None, placement: Placement | None = None) -> Path:
     """The folder of the encoder this run fits or reuses (`encoder_key_of`; for a frozen base the key also
     holds the base's identity, its weights' checksum)."""
-    key = encoder_key_of(prepared, dataset.fingerprint, base_identity)
+    key = encoder_key_of(prepared, dataset.fingerprint, base_identity, placement)
     return home.encoders / f"{prepared.config['encoder']['name']}-{key}"
 
 
@@ -223,7 +225,7 @@ def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchH
         cache = attach()
         return encoder, {"fitted": False, "reused": False, **placed,
                          **({} if cache is None else {"feature_cache": cache})}
-    workdir = encoder_workdir(prepared, dataset, home, None if base is None else base.identity())
+    workdir = encoder_workdir(prepared, dataset, home, None if base is None else base.identity(), placement)
     with exclusive_lock(home.encoders / f".{workdir.name}.lock"):  # concurrent runs fit it once
         # A stored checkpoint is loaded (and refused if it cannot be) before the cache is built.
         fit = _fit_or_load(encoder, spec, dataset, workdir, prepared.request.force, show_progress,

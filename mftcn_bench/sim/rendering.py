@@ -44,10 +44,44 @@ def gl_renderer() -> str:
 
 
 def follow_device(device: str) -> None:
-    """On a GPU run with EGL, render on that GPU: MUJOCO_EGL_DEVICE_ID follows `cuda:N` unless it is set
-    (it must be set before MuJoCo makes its first EGL context)."""
-    if device.startswith("cuda") and os.environ.get("MUJOCO_GL", "egl") == "egl":
-        os.environ.setdefault("MUJOCO_EGL_DEVICE_ID", device.partition(":")[2] or "0")
+    """On a GPU run with EGL, render on that GPU: MUJOCO_EGL_DEVICE_ID (unless set) becomes the EGL device
+    whose CUDA device is `cuda:N`. EGL numbers its devices in its own order, so the index is looked up
+    through EGL_CUDA_DEVICE_NV; where that cannot be read, nothing is set and MuJoCo takes the first EGL
+    device that works (on a one-GPU machine, that GPU). Call before MuJoCo makes its first EGL context."""
+    if not device.startswith("cuda") or os.environ.get("MUJOCO_GL", "egl") != "egl":
+        return
+    if "MUJOCO_EGL_DEVICE_ID" in os.environ:
+        return
+    index = egl_device_of_cuda(int(device.partition(":")[2] or 0))
+    if index is not None:
+        os.environ["MUJOCO_EGL_DEVICE_ID"] = str(index)
+
+
+EGL_CUDA_DEVICE_NV = 0x323A
+
+
+def egl_device_of_cuda(cuda_index: int) -> int | None:
+    """The EGL device index whose EGL_CUDA_DEVICE_NV is `cuda_index`, or None where EGL or the NVIDIA
+    extension cannot say (CPU machines, Mesa)."""
+    try:
+        os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+        import ctypes
+
+        from OpenGL import EGL
+
+        count = EGL.EGLint()
+        if not EGL.eglQueryDevicesEXT(0, None, ctypes.pointer(count)) or count.value < 1:
+            return None
+        devices = (EGL.EGLDeviceEXT * count.value)()
+        EGL.eglQueryDevicesEXT(count.value, devices, ctypes.pointer(count))
+        for index in range(count.value):
+            value = EGL.EGLAttrib()
+            if EGL.eglQueryDeviceAttribEXT(devices[index], EGL_CUDA_DEVICE_NV, ctypes.pointer(value)) and \
+                    value.value == cuda_index:
+                return index
+    except Exception:  # noqa: BLE001 - no EGL, no extension, another binding: leave MuJoCo's default
+        return None
+    return None
 
 
 def ensure_gl() -> str:
