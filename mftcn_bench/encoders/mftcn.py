@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -42,6 +42,16 @@ def parse_base(encoder: str, table: Any) -> BaseConfig:
     return parse_table(BaseConfig, encoder, "model.base", table)
 
 
+T = TypeVar("T")
+
+
+def parse_model_on_base(cls: type[T], encoder: str, table: dict[str, Any]) -> T:
+    """A `[model]` table with a `[model.base]` sub-table -> `cls` (its `base` field a BaseConfig)."""
+    table = dict(table)
+    base = parse_base(encoder, table.pop("base", {}))
+    return parse_table(cls, encoder, "model", {**table, "base": base})
+
+
 @dataclass(frozen=True)
 class MfTCNModelConfig:
     """The `[model]` table of an mfTCN spec."""
@@ -52,9 +62,7 @@ class MfTCNModelConfig:
 
     @classmethod
     def from_table(cls, encoder: str, table: dict[str, Any]) -> MfTCNModelConfig:
-        table = dict(table)
-        base = parse_base(encoder, table.pop("base", {}))
-        config = parse_table(cls, encoder, "model", {**table, "base": base})
+        config = parse_model_on_base(cls, encoder, table)
         if config.adapter_channels < 0 or config.temporal_channels < 1:
             raise SpecError(f"encoder {encoder!r}: [model] adapter_channels must be >= 0 and temporal_channels "
                             f">= 1, got {config.adapter_channels} and {config.temporal_channels}")

@@ -33,7 +33,7 @@ from mftcn_bench.encoders.base import FitBudget, ProgressFn
 from mftcn_bench.encoders.bases import BaseConfig, base_channels, build_base
 from mftcn_bench.encoders.common import check_image_shape, parse_table, to_images
 from mftcn_bench.encoders.frame_cnn import SingleViewTrainConfig, train_single_view
-from mftcn_bench.encoders.mftcn import OnBaseEncoder, OnBaseNet, frame_adapter, parse_base
+from mftcn_bench.encoders.mftcn import OnBaseEncoder, OnBaseNet, frame_adapter, parse_model_on_base
 from mftcn_bench.encoders.streaming import StreamingEmbedder
 from mftcn_bench.encoders.training import EpisodePool, views_of
 
@@ -48,9 +48,7 @@ class ShuffleModelConfig:
 
     @classmethod
     def from_table(cls, encoder: str, table: dict[str, Any]) -> ShuffleModelConfig:
-        table = dict(table)
-        base = parse_base(encoder, table.pop("base", {}))
-        config = parse_table(cls, encoder, "model", {**table, "base": base})
+        config = parse_model_on_base(cls, encoder, table)
         if config.adapter_channels < 0 or config.mlp_hidden < 1:
             raise SpecError(f"encoder {encoder!r}: [model] adapter_channels must be >= 0 and mlp_hidden >= 1, "
                             f"got {config.adapter_channels} and {config.mlp_hidden}")

@@ -42,9 +42,9 @@ from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
 from mftcn_bench.encoders.bases import BaseConfig, base_channels, build_base
-from mftcn_bench.encoders.common import check_image_shape, parse_table
+from mftcn_bench.encoders.common import check_image_shape
 from mftcn_bench.encoders.feature_cache import FeatureCache
-from mftcn_bench.encoders.mftcn import MfTCNEncoder, OnBaseNet, frame_adapter, parse_base
+from mftcn_bench.encoders.mftcn import MfTCNEncoder, OnBaseNet, frame_adapter, parse_model_on_base
 from mftcn_bench.encoders.training import (
     ContrastiveTrainConfig,
     EpisodePool,
@@ -74,9 +74,7 @@ class TCNModelConfig:
 
     @classmethod
     def from_table(cls, encoder: str, table: dict[str, Any]) -> TCNModelConfig:
-        table = dict(table)
-        base = parse_base(encoder, table.pop("base", {}))
-        return parse_table(cls, encoder, "model", {**table, "base": base})
+        return parse_model_on_base(cls, encoder, table)
 
 
 @dataclass(frozen=True)
