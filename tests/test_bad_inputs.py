@@ -266,6 +266,12 @@ SPEC_CASES = {
                        ["task.probe.epochs must be >= 1, got 0"]),
     "probe validation fraction out of range": (["run", *TINY_TASK, "--set", "task.probe.validation_fraction=2.0"],
                                                ["validation_fraction must be in [0, 1)", "got 2.0"]),
+    "probe-state readout without the difference": (
+        ["run", "--task", "swingup-probe-state", "--preset", "smoke", "--set", "task.env.embedding_difference=false"],
+        ["the probe reads [e_t, e_t - e_t-1]; set [env] embedding_difference = true"]),
+    "probe-state readout of another camera": (
+        ["run", "--task", "swingup-probe-state", "--preset", "smoke", "--set", "task.probe.camera=lookatcart"],
+        ["[probe] camera 'lookatcart' must be the policy's camera, [env] camera 'fixed'"]),
 }
 
 

@@ -40,3 +40,20 @@ def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encod
     assert json.loads((run_dir / "result.json").read_text())["curves"] == record.curves
     if task == "cheetah":  # one expert serves every row's demonstrations
         assert len(list((control_home / "experts").glob("cheetah-run-*/expert.pt"))) == 1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", ["swingup-difference", "swingup-probe-state"])
+def test_smoke_run_of_a_ppo_limit_analysis(control_home, task, capsys):
+    """The PPO-limit variants run mftcn5 end to end; the probe-state one stores its readout's test R^2."""
+    code = main(["run", "--encoder", "mftcn5", "--task", task, "--preset", "smoke", "--no-progress",
+                 "--home", str(control_home)])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    [record] = ResultStore(control_home / "results.sqlite").query(task=task, encoder="mftcn5")
+    assert record.metrics["frames"] == 320 and record.config["task"]["env"]["embedding_difference"] is True
+    if task == "swingup-probe-state":
+        r2 = [record.metrics[f"probe_r2_{k}"] for k in ("x_cart", "sin_theta", "cos_theta", "x_dot", "theta_dot")]
+        assert record.metrics["probe_r2_mean"] == pytest.approx(np.mean(r2))
+        assert all(np.isfinite(r2)) and "probe R^2 (mean of 5)" in out
+        assert any(note.startswith("policy input: the probe's prediction") for note in record.config["notes"])

@@ -1,5 +1,6 @@
 import pytest
 
+from mftcn_bench.core import registry
 from mftcn_bench.core.errors import SpecError
 from mftcn_bench.core.specs import EncoderSpec, TaskSpec, apply_overrides, parse_override, parse_toml, resolve_config
 
@@ -113,3 +114,15 @@ def test_tasks_share_the_named_dataset():
     assert tables["cartpole-probe"] == tables["swingup"] and tables["swingup-160"] == tables["swingup-moving"]
     assert {k: v for k, v in tables["swingup-160"].items() if k not in ("height", "width")} == \
         {k: v for k, v in tables["swingup"].items() if k not in ("height", "width")}
+
+
+def test_probe_state_readout_is_the_cartpole_probe():
+    """swingup-probe-state's [probe] table is cartpole-probe's, preset by preset (one probe, two uses)."""
+    probe_spec = registry.get("tasks", "cartpole-probe").spec
+    readout_spec = registry.get("tasks", "swingup-probe-state").spec
+    encoder = registry.get("encoders", "mftcn5").spec
+    for preset in ("quick", "paper"):
+        _, probe = resolve_config(encoder, probe_spec, preset, [])
+        _, readout = resolve_config(encoder, readout_spec, preset, [])
+        assert readout["task"]["probe"] == probe["task"]["probe"], preset
+        assert readout["task"]["env"]["embedding_difference"] is True

@@ -110,3 +110,34 @@ def test_embedding_difference_is_the_change_since_the_previous_simulator_frame()
     env.step(td)
     # lookback 1 renders the last two frames of the repeat, and embeds both
     assert [p[2] for p in counting.pushes] == ["push", "push", "push"]
+
+
+class SumReadout:
+    """Maps each observation row to (sum, first - last): a fixed readout with a width of its own."""
+
+    out_features = 2
+
+    def __call__(self, observation):
+        return np.stack([observation.sum(1), observation[:, 0] - observation[:, -1]], axis=1)
+
+
+def test_readout_maps_the_observation_before_the_policy_sees_it():
+    from dataclasses import replace
+
+    config = replace(CONFIG, embedding_difference=True)
+    plain = SuiteBatchEnv(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
+    mapped = SuiteBatchEnv(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False,
+                           readout=SumReadout())
+    assert mapped.observation_spec["observation"].shape == (2, 2)
+    check_env_specs(SuiteBatchEnv(config, 2, seed=3, observer=StateObserver(), embedding_dim=5,
+                                  observer_uses_pixels=False, readout=SumReadout()))
+    td_plain, td_mapped = plain.reset(), mapped.reset()
+    for _ in range(3):  # the same physics: the readout of the plain observation ([e_t, e_t - e_t-1]) each step
+        assert np.allclose(td_mapped.get("observation").numpy(), SumReadout()(td_plain.get("observation").numpy()),
+                           atol=1e-5)
+        td_plain.set("action", torch.full((2, 1), -0.4))
+        td_mapped.set("action", torch.full((2, 1), -0.4))
+        td_plain, td_mapped = plain.step(td_plain)["next"], mapped.step(td_mapped)["next"]
+        assert td_mapped.get("observation").dtype == torch.float32
+    assert np.allclose(td_mapped.get("observation").numpy(), SumReadout()(td_plain.get("observation").numpy()),
+                       atol=1e-5)

@@ -12,7 +12,9 @@ frozen encoder's embedding of the clip ending at the current frame. Frames are r
 encoder reads pixels, and then only the physics steps a clip can reach: the last min(lookback,
 action_repeat) of each repeat, so a clip sees consecutive simulator frames exactly as in the encoder's
 training data. With `embedding_difference` the observation is [e_t, e_t - e_{t-1}], e_{t-1} the embedding
-of the simulator frame before (0 difference at an episode's first frame, as the probe's clamping). For an
+of the simulator frame before (0 difference at an episode's first frame, as the probe's clamping). A
+`Readout` maps that observation once more before the policy sees it (swingup-probe-state: the state a
+fitted probe predicts from it). For an
 encoder trained jointly with the policy (pixels-cnn) the environment emits the raw
 clip ("pixels", uint8 [E, n, 3, H, W]) instead.
 """
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -90,6 +93,15 @@ def step_reward(env, action: np.ndarray) -> float:
     return reward or 0.0
 
 
+class Readout(Protocol):
+    """A fixed map from the environment's observation rows [E, F] to what the policy sees, [E, out_features]
+    (not trained by PPO)."""
+
+    out_features: int
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray: ...
+
+
 @dataclass(frozen=True)
 class PixelClip:
     """Emit the raw clip of `frames` frames at `stride` (for encoders trained with the policy)."""
@@ -103,7 +115,8 @@ class SuiteBatchEnv(EnvBase):
 
     def __init__(self, config: SuiteConfig, num_envs: int, seed: int,
                  observer: Observer | None, embedding_dim: int, observer_uses_pixels: bool,
-                 lookback: int = 1, pixel_clip: PixelClip | None = None) -> None:
+                 lookback: int = 1, pixel_clip: PixelClip | None = None,
+                 readout: Readout | None = None) -> None:
         super().__init__(batch_size=torch.Size([num_envs]))
         ensure_gl()
         from dm_control import suite
@@ -111,7 +124,7 @@ class SuiteBatchEnv(EnvBase):
         if (observer is None) == (pixel_clip is None):
             raise ValueError("give exactly one of observer and pixel_clip")
         self.config, self.num_envs = config, num_envs
-        self.observer, self.pixel_clip = observer, pixel_clip
+        self.observer, self.pixel_clip, self.readout = observer, pixel_clip, readout
         self.seed = seed
         self.episode_index = 0  # episodes started so far by each instance; seeds the next initial states
         self._envs = [suite.load(config.domain, config.task, task_kwargs={"random": seed}) for _ in range(num_envs)]
@@ -126,6 +139,9 @@ class SuiteBatchEnv(EnvBase):
         if config.embedding_difference and pixel_clip is not None:
             raise SpecError("[env] embedding_difference needs an encoder's embedding; an encoder trained with "
                             "the policy (pixels-cnn) gives the policy raw clips")
+        if readout is not None and pixel_clip is not None:
+            raise SpecError("a readout maps an encoder's embedding; an encoder trained with the policy (pixels-cnn) "
+                            "gives the policy raw clips")
         self._embedded_steps = 2 if config.embedding_difference and config.action_repeat > 1 else 1
         reach = max(lookback, self._embedded_steps)
         self.render_steps = min(reach, config.action_repeat) if self._renders else 0
@@ -133,7 +149,8 @@ class SuiteBatchEnv(EnvBase):
         self._last: np.ndarray | None = None      # the last agent step's embedding (e_{t-1} at action repeat 1)
         self._t = 0
         action_dim = int(self._envs[0].action_spec().shape[0])
-        width = embedding_dim * (2 if config.embedding_difference else 1)
+        width = readout.out_features if readout is not None else embedding_dim * (
+            2 if config.embedding_difference else 1)
         obs_spec = (Unbounded(shape=(num_envs, width), dtype=torch.float32) if pixel_clip is None else
                     Bounded(0, 255, shape=(num_envs, pixel_clip.frames, 3, config.height, config.width),
                             dtype=torch.uint8))
@@ -165,11 +182,13 @@ class SuiteBatchEnv(EnvBase):
             self.observer.observe(frames, starts, self._state())
             return None
         out = self.observer.push(frames, starts, self._state())
-        if not self.config.embedding_difference:
-            return torch.from_numpy(out)
-        previous = out if start else self._previous if self._previous is not None else self._last
-        self._previous, self._last = None, out
-        return torch.from_numpy(np.concatenate([out, out - previous], axis=1))
+        if self.config.embedding_difference:
+            previous = out if start else self._previous if self._previous is not None else self._last
+            self._previous, self._last = None, out
+            out = np.concatenate([out, out - previous], axis=1)
+        if self.readout is not None:
+            out = np.ascontiguousarray(self.readout(out), dtype=np.float32)
+        return torch.from_numpy(out)
 
     def _remember(self) -> None:
         """Embed the frame before an agent step's last one: e_{t-1} of the difference."""

@@ -10,30 +10,39 @@ and wall time) is stored with the result (the runner draws it to `curve.png` in 
 
 pixels-cnn is the exception that proves the rule: its CNN has no training signal of its own and is
 trained by the PPO losses together with the policy (the environment emits raw clips for it).
+
+swingup-probe-state (`ProbeStateControlTask`) is an analysis of what limits PPO on an embedding: the
+policy sees the cartpole state that the cartpole-probe's MLP, fitted on the task's dataset, predicts from
+[e_t, e_t - e_{t-1}], so its return bounds what the embedding's information about the state allows once
+the mapping to state is given rather than learnt by PPO.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
+from sklearn.metrics import r2_score
 from torch import nn
 
 from mftcn_bench.core.errors import SpecError
 from mftcn_bench.core.home import BenchHome
 from mftcn_bench.core.specs import parse_table
-from mftcn_bench.data.cartpole import collect_episode
+from mftcn_bench.data.cartpole import TARGETS, collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder, trains_with_policy, uses_pixels
 from mftcn_bench.rl.demos import ExpertDemoCollector
 from mftcn_bench.rl.expert import ensure_expert, expert_key
 from mftcn_bench.rl.observers import make_observer
 from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
-from mftcn_bench.rl.suite_env import PixelClip, SuiteBatchEnv, SuiteConfig
+from mftcn_bench.rl.suite_env import PixelClip, Readout, SuiteBatchEnv, SuiteConfig
 from mftcn_bench.sim.suite_limits import check_episode_fits
 from mftcn_bench.tasks.base import TaskResult
+from mftcn_bench.tasks.probe import ProbeConfig, ProbeMLP, fit_probe, probe_split
 
 
 class ClipTrunk(nn.Module):
@@ -59,6 +68,7 @@ class ControlTask:
     def __init__(self, config: Mapping[str, Any], seed: int) -> None:
         self.config, self.seed = config, seed
         self.device = torch.device("cpu")
+        self.readout: Readout | None = None  # what maps the observation before the policy (none: the embedding)
         dataset = config["dataset"]
         seen_as = {"height": dataset["height"], "width": dataset["width"], **dataset["render"]}
         self.env_config = _table(SuiteConfig, config["name"], "env", {**config["env"], **seen_as})
@@ -95,7 +105,8 @@ class ControlTask:
                 return SuiteBatchEnv(self.env_config, num_envs, seed, None, info.embedding_dim, True,
                                      pixel_clip=PixelClip(info.frames, info.stride))
             return SuiteBatchEnv(self.env_config, num_envs, seed, make_observer(encoder, num_envs),
-                                 info.embedding_dim, uses_pixels(encoder), lookback=info.lookback)
+                                 info.embedding_dim, uses_pixels(encoder), lookback=info.lookback,
+                                 readout=self.readout)
 
         trunk = ClipTrunk(encoder.net, info.embedding_dim) if joint else None
         return make_env, trunk
@@ -133,6 +144,54 @@ class ControlTask:
     def table(self, metrics: Mapping[str, Any]) -> list[dict[str, Any]]:
         return [{"return (mean)": metrics["return_mean"], "return (sample std, ddof=1)": metrics["return_std"],
                  "test episodes": int(metrics["episodes"]), "training frames": int(metrics["frames"])}]
+
+
+@dataclass(frozen=True)
+class ProbeReadout:
+    """The fitted probe as a `Readout`: [e_t, e_t - e_{t-1}] -> the predicted state in TARGETS order, the
+    order and scale in which the true-state encoder gives the state."""
+
+    regressor: ProbeMLP
+    out_features: int = len(TARGETS)
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return self.regressor.predict(observation)
+
+
+class ProbeStateControlTask(ControlTask):
+    """PPO on the cartpole state that the probe (`[probe]`, cartpole-probe's MLP) predicts from the
+    embedding; the probe is fitted on the train split of the task's dataset before PPO and its R^2 on the
+    test split is stored with the return."""
+
+    def __init__(self, config: Mapping[str, Any], seed: int) -> None:
+        super().__init__(config, seed)
+        name = config["name"]
+        self.probe = _table(ProbeConfig, name, "probe", config["probe"])
+        if self.env_config.domain != "cartpole":
+            raise SpecError(f"task {name!r}: the probe regresses the cartpole's state; [env] domain is "
+                            f"{self.env_config.domain!r}")
+        if not self.env_config.embedding_difference:
+            raise SpecError(f"task {name!r}: the probe reads [e_t, e_t - e_t-1]; set [env] embedding_difference = true")
+        if self.probe.camera != self.env_config.camera:
+            raise SpecError(f"task {name!r}: [probe] camera {self.probe.camera!r} must be the policy's camera, "
+                            f"[env] camera {self.env_config.camera!r}")
+
+    def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path) -> TaskResult:
+        x_train, y_train, episodes = probe_split(encoder, dataset, self.probe.camera, "train")
+        regressor = fit_probe(self.probe, self.seed, x_train, y_train, episodes)
+        x_test, y_test, _ = probe_split(encoder, dataset, self.probe.camera, "test")
+        r2 = r2_score(y_test, regressor.predict(x_test), multioutput="raw_values")
+        self.readout = ProbeReadout(regressor)
+        result = super().evaluate(encoder, dataset, workdir)
+        quality = {f"probe_r2_{k}": float(v) for k, v in zip(TARGETS, r2, strict=True)}
+        quality["probe_r2_mean"] = float(r2.mean())
+        note = (f"policy input: the probe's prediction of the state from [e_t, e_t - e_t-1] (fitted on "
+                f"{len(x_train)} train frames; test R^2 " + ", ".join(f"{k} {v:.2f}" for k, v in
+                                                                     zip(TARGETS, r2, strict=True)) + ")")
+        return TaskResult({**result.metrics, **quality}, [*result.notes, note], result.curves)
+
+    def table(self, metrics: Mapping[str, Any]) -> list[dict[str, Any]]:
+        return [{**row, "probe R^2 (mean of 5)": metrics.get("probe_r2_mean")} for row in super().table(metrics)]
 
 
 class ExpertDemoControlTask(ControlTask):

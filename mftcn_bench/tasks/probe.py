@@ -127,8 +127,32 @@ class ProbeMLP:
 
 
 def probe_regressor(probe: ProbeConfig, seed: int) -> ProbeMLP:
-    """The probe's regressor (one definition, used by cartpole-probe and the state-probe diagnostic)."""
+    """The probe's regressor (one definition, used by cartpole-probe, swingup-probe-state and the
+    state-probe diagnostic)."""
     return ProbeMLP(probe, seed)
+
+
+def probe_split(encoder: Encoder, dataset: MultiViewDataset, camera: str,
+                split: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Probe features [e_t, e_t - e_{t-1}] of `camera`, state targets (TARGETS order) and each row's episode
+    index, for every episode of one split."""
+    view = dataset.cameras.index(camera)
+    xs, ys, names = [], [], []
+    for episode in dataset.iter_episodes(split):
+        embeddings = embed_episode(encoder, episode.frames[view], episode.state)
+        xs.append(probe_features(embeddings))
+        ys.append(state_targets(episode.state))
+        names.append(np.full(len(embeddings), episode.index))
+    return np.concatenate(xs), np.concatenate(ys), np.concatenate(names)
+
+
+def fit_probe(probe: ProbeConfig, seed: int, x: np.ndarray, y: np.ndarray, episodes: np.ndarray) -> ProbeMLP:
+    """The probe's regressor fitted on rows `x`, targets `y` and their `episodes` (sklearn's warning that
+    the epoch budget ran out is expected: early stopping, not convergence, ends the fit)."""
+    regressor = probe_regressor(probe, seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        return regressor.fit(x, y, episodes)
 
 
 def summarize(mse: Mapping[str, float]) -> dict[str, float]:
@@ -165,24 +189,10 @@ class CartpoleProbe:
     def collector(self) -> Collector:
         return collect_episode
 
-    def features(self, encoder: Encoder, dataset: MultiViewDataset, split: str) -> tuple[np.ndarray, ...]:
-        """Probe features, targets and each row's episode index for one split."""
-        view = dataset.cameras.index(self.probe.camera)
-        xs, ys, names = [], [], []
-        for episode in dataset.iter_episodes(split):
-            embeddings = embed_episode(encoder, episode.frames[view], episode.state)
-            xs.append(probe_features(embeddings))
-            ys.append(state_targets(episode.state))
-            names.append(np.full(len(embeddings), episode.index))
-        return np.concatenate(xs), np.concatenate(ys), np.concatenate(names)
-
     def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path | None = None) -> TaskResult:
-        x_train, y_train, episodes = self.features(encoder, dataset, "train")
-        x_test, y_test, _ = self.features(encoder, dataset, "test")
-        regressor = probe_regressor(self.probe, self.seed)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            regressor.fit(x_train, y_train, episodes)
+        x_train, y_train, episodes = probe_split(encoder, dataset, self.probe.camera, "train")
+        x_test, y_test, _ = probe_split(encoder, dataset, self.probe.camera, "test")
+        regressor = fit_probe(self.probe, self.seed, x_train, y_train, episodes)
         predicted = regressor.predict(x_test)
         mse = mean_squared_error(y_test, predicted, multioutput="raw_values")
         metrics: dict[str, float | None] = summarize(dict(zip(TARGETS, mse, strict=True)))
