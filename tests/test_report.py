@@ -102,7 +102,8 @@ def test_latex_format_escapes_and_uses_pm(tmp_path):
 
 def test_every_table_renders_from_an_empty_store(tmp_path):
     text = report(ResultStore(tmp_path / "r.sqlite"), list(TABLES))
-    assert text.count("### ") == 5 and "- (0.0198)" in text and "- (811.10)" in text and "- (8.9)" in text
+    assert text.count("### ") == len(TABLES) == 6
+    assert "- (0.0198)" in text and "- (811.10)" in text and "- (8.9)" in text
 
 
 def test_a_task_encoder_default_embedding_size_is_the_paper_row_not_an_override():
@@ -113,3 +114,34 @@ def test_a_task_encoder_default_embedding_size_is_the_paper_row_not_an_override(
     run = make_record("true-state", "cheetah", 0, {"return_mean": 324.0, "return_std": 16.0}, config=config)
     text = render(TABLES["cheetah"], table_rows(TABLES["cheetah"], [run], accept=accept_all))
     assert "324.00 (390.16)" in line_of(text, "True State") and NOT_IN_PAPER not in text
+
+
+def resolved(encoder, task, overrides=()):
+    _, config = resolve_config(registry.get("encoders", encoder).spec, registry.get("tasks", task).spec, "quick",
+                               list(overrides))
+    return config
+
+
+def test_swingup_limits_counts_each_ppo_budget_as_its_own_row(tmp_path):
+    """The analysis table varies PPO's budget: a run with task.ppo.frames overridden counts in its budget's row
+    (the swingup table leaves it out), the same seed at two budgets is two runs, and other overrides stay out."""
+    budget = [("task.ppo.frames", 3_000_000), ("task.ppo.eval_episodes", 100)]
+    store = ResultStore(tmp_path / "results.sqlite")
+    runs = [make_record("true-state", "swingup", 1, {"return_mean": 506.0, "return_std": 1.0},
+                        config=resolved("true-state", "swingup")),
+            make_record("true-state", "swingup", 1, {"return_mean": 839.0, "return_std": 0.2},
+                        config=resolved("true-state", "swingup", budget), created_at="2026-01-03T00:00:00+00:00"),
+            make_record("true-state-noisy", "swingup", 0, {"return_mean": 300.0, "return_std": 9.0},
+                        config=resolved("true-state-noisy", "swingup", [("encoder.model.noise_std", [0.1] * 5)])),
+            make_record("mftcn5", "swingup-probe-state", 0, {"return_mean": 400.0, "return_std": 30.0},
+                        config=resolved("mftcn5", "swingup-probe-state"))]
+    for run in runs:
+        store.put(run)
+    text = report(store, ["swingup-limits"])
+    assert "506.00 " in line_of(text, "| True state   ", "| 1 M ")
+    assert "839.00 (861.41)" in line_of(text, "| True state   ", "| 3 M ")
+    assert "400.00 " in line_of(text, "the probe's predicted state", "| 1 M ")
+    assert "- (701.30)" in line_of(text, "mfTCN5 e_t", "| 3 M ")
+    assert "Left out: 1 stored run (1: older spec files or other overrides)" in text  # the other noise
+    swingup = report(store, ["swingup"])
+    assert "506.00 " in line_of(swingup, "True State") and "839.00" not in swingup

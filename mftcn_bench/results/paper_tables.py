@@ -1,5 +1,6 @@
 """The paper's five result tables as data: rows (label, our encoder and task, a config filter), metric
-columns, and the paper's published figures.
+columns, and the paper's published figures; and one table of our own, `swingup-limits`, the PPO-limit
+analyses of issue 20 (what keeps PPO on an embedding below PPO on true state).
 
 This module is the one place where the paper's numbers are written down (from
 "Learning Actionable Representations from Visual Observations", tables `table_regression`,
@@ -14,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from mftcn_bench.data.cartpole import TARGETS
+from mftcn_bench.results.selection import VARIED
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,8 @@ class PaperTable:
     rows: tuple[PaperRow, ...]
     note: str = ""
     decimals: int = 4
+    # Config keys whose overridden values a run may have and still count (each value is its own row).
+    varied: tuple[str, ...] = VARIED
 
     @property
     def tasks(self) -> tuple[str, ...]:
@@ -172,4 +176,31 @@ POURING_ATTRIBUTES = PaperTable(
     decimals=1,
 )
 
-TABLES: dict[str, PaperTable] = {t.name: t for t in (PROBE, SWINGUP, CHEETAH, POURING, POURING_ATTRIBUTES)}
+# --- Not in the paper: what limits PPO on an embedding (swing-up at 96x48) -----------------------------
+_FRAMES = "task.ppo.frames"
+_BUDGETS = {"1 M": 1_000_000, "3 M": 3_000_000}  # the quick and the paper preset's PPO frames
+SWINGUP_LIMITS = PaperTable(
+    name="swingup-limits",
+    title="What limits PPO on an embedding: cartpole swing-up at 96x48, by policy input and PPO budget",
+    label_headers=("Input to PPO", "PPO frames"),
+    columns=_RETURN_COLUMNS,
+    rows=tuple(
+        PaperRow((label, budget), encoder, task, {_FRAMES: _BUDGETS[budget]}, paper if budget == "3 M" else None)
+        for label, encoder, task, budgets, paper in (
+            ("True state", "true-state", "swingup", ("1 M", "3 M"), (861.41, 3.46)),
+            ("True state + noise of mfTCN5's probe residual", "true-state-noisy", "swingup", ("1 M", "3 M"), None),
+            ("mfTCN5 -> the probe's predicted state", "mftcn5", "swingup-probe-state", ("1 M",), None),
+            ("mfTCN5 [e_t, e_t - e_t-1]", "mftcn5", "swingup-difference", ("1 M",), None),
+            ("mfTCN5 e_t", "mftcn5", "swingup", ("1 M", "3 M"), (701.30, 80.14)),
+            ("mfTCN1 e_t", "mftcn1", "swingup", ("1 M",), (550.98, 53.40)),
+        )
+        for budget in budgets),
+    note="Runs of the quick preset (encoders trained on the quick dataset) with PPO's budget as the row says "
+         "(`--set task.ppo.frames=3000000 --set task.ppo.eval_episodes=100` for 3 M), and of the paper preset. "
+         "The paper's figures (in brackets) are its rows at its budget.",
+    decimals=2,
+    varied=(*VARIED, _FRAMES, "task.ppo.eval_episodes"),
+)
+
+TABLES: dict[str, PaperTable] = {t.name: t for t in (PROBE, SWINGUP, CHEETAH, POURING, POURING_ATTRIBUTES,
+                                                     SWINGUP_LIMITS)}

@@ -18,10 +18,12 @@ from tabulate import tabulate
 
 from mftcn_bench.results.paper_tables import TABLES, PaperRow, PaperTable
 from mftcn_bench.results.selection import (
+    VARIED,
     Accept,
     code_label,
     config_value,
     counted_runs,
+    current_specs_varying,
     default_embedding_dim,
     left_out_line,
     matches_current_specs,
@@ -78,10 +80,12 @@ def _by_preset(runs: Iterable[RunRecord]) -> dict[str, list[RunRecord]]:
 
 
 def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | None = None,
-               accept: Accept = matches_current_specs) -> list[ReportRow]:
+               accept: Accept | None = None) -> list[ReportRow]:
     """The table's rows from `records`: each paper row once per preset that has runs for it (or once with
-    "-" when none has), then the runs no paper row covers."""
-    runs = [r for r in counted_runs(records, accept)
+    "-" when none has), then the runs no paper row covers. By default the runs of today's specs count,
+    with at most the table's `varied` keys overridden."""
+    accept = accept or current_specs_varying(table.varied)
+    runs = [r for r in counted_runs(records, accept, table.varied)
             if r.task in table.tasks and (preset is None or r.preset == preset)]
     used: set[str] = set()
     rows: list[ReportRow] = []
@@ -98,7 +102,7 @@ def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | No
     extra: dict[tuple, list[RunRecord]] = defaultdict(list)
     for record in runs:
         if record.run_id not in used:
-            extra[variant_key(record)].append(record)
+            extra[variant_key(record, table.varied)].append(record)
     blank = ("",) * (len(table.label_headers) - 1)
     for group in extra.values():
         first = group[0]
@@ -136,8 +140,10 @@ def render(table: PaperTable, rows: Sequence[ReportRow], fmt: Format = "markdown
         if fmt == "latex":
             labels = [_latex_escape(text) for text in labels]
         body.append([*labels, *cells, _latex_escape(row.code) if fmt == "latex" else row.code])
+    overridable = ("embedding size" if table.varied == VARIED else
+                   ", ".join(key.replace("encoder.embedding_dim", "embedding size") for key in table.varied))
     explain = (f"Ours: mean ± {STD_KIND} (seeds = n); the paper's figure in brackets, \"-\" where it has "
-               f"none. Only runs of the current spec files count (embedding size may be overridden). "
+               f"none. Only runs of the current spec files count ({overridable} may be overridden). "
                f"{table.note}").strip()
     if fmt == "latex":
         headers = [_latex_escape(h) for h in headers]
@@ -149,12 +155,16 @@ def render(table: PaperTable, rows: Sequence[ReportRow], fmt: Format = "markdown
 
 
 def report(store: ResultStore, names: Sequence[str], preset: str | None = None, fmt: Format = "markdown",
-           accept: Accept = matches_current_specs) -> str:
-    """The named tables (see TABLES) rendered from `store`, separated by blank lines."""
+           accept: Accept | None = None) -> str:
+    """The named tables (see TABLES) rendered from `store`, each followed by the line saying which of its
+    tasks' stored runs it left out, separated by blank lines."""
     records = store.query(preset=preset)
-    parts = [render(TABLES[name], table_rows(TABLES[name], records, preset, accept), fmt) for name in names]
-    tasks = {task for name in names for task in TABLES[name].tasks}
-    skipped = left_out_line([r for r in records if r.task in tasks], accept)
-    if skipped:
-        parts.append(f"% {skipped}" if fmt == "latex" else skipped)
+    parts = []
+    for name in names:
+        table = TABLES[name]
+        parts.append(render(table, table_rows(table, records, preset, accept), fmt))
+        skipped = left_out_line([r for r in records if r.task in table.tasks],
+                                accept or current_specs_varying(table.varied), table.varied)
+        if skipped:
+            parts.append(f"% {skipped}" if fmt == "latex" else skipped)
     return "\n\n".join(parts)

@@ -1,14 +1,15 @@
 """Which stored runs a table, leaderboard or plot counts.
 
 A run counts when it was made with today's spec files for its encoder, task and preset, with at most the
-embedding size overridden (the paper's tables vary it): runs of older specs or other overrides are never
-mixed in. Of several such runs of one (encoder, task, preset, embedding size, seed), the latest counts.
+keys a table varies overridden (`VARIED`: the embedding size, which the paper's tables vary; the PPO-limit
+analyses also vary PPO's budget): runs of older specs or other overrides are never mixed in. Of several
+such runs of one variant (encoder, task, preset, the varied keys' values) and seed, the latest counts.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 from mftcn_bench.core import registry
@@ -18,19 +19,22 @@ from mftcn_bench.results.store import RunRecord
 
 Accept = Callable[[RunRecord], bool]
 
+VARIED: tuple[str, ...] = ("encoder.embedding_dim",)  # what a table varies between rows unless it says more
 
-def exclusion(record: RunRecord) -> str | None:
-    """Why a stored run does not count for today's specs (None: it counts)."""
+
+def exclusion(record: RunRecord, varied: Sequence[str] = VARIED) -> str | None:
+    """Why a stored run does not count for today's specs with the `varied` keys as the run had them (None:
+    it counts)."""
     try:
         encoder, task = registry.get("encoders", record.encoder), registry.get("tasks", record.task)
     except BenchError:
         return "encoder or task not installed here"
+    overrides = [(key, value) for key in varied if (value := config_value(record, key)) is not None]
     try:
-        _, config = resolve_config(encoder.spec, task.spec, record.preset,
-                                   [("encoder.embedding_dim", record.config["encoder"]["embedding_dim"])])
+        _, config = resolve_config(encoder.spec, task.spec, record.preset, overrides)
     except (BenchError, KeyError, TypeError):
         return "a config today's specs cannot reproduce"
-    if config["encoder"] != record.config["encoder"] or config["task"] != record.config["task"]:
+    if config["encoder"] != record.config.get("encoder") or config["task"] != record.config.get("task"):
         return "older spec files or other overrides"
     return None
 
@@ -41,22 +45,31 @@ def matches_current_specs(record: RunRecord) -> bool:
     return exclusion(record) is None
 
 
-def left_out(records: Iterable[RunRecord], accept: Accept = matches_current_specs) -> dict[str, int]:
+def current_specs_varying(varied: Sequence[str]) -> Accept:
+    """Accept the runs of today's spec files with at most the `varied` keys overridden."""
+    if tuple(varied) == VARIED:
+        return matches_current_specs
+    return lambda record: exclusion(record, varied) is None
+
+
+def left_out(records: Iterable[RunRecord], accept: Accept = matches_current_specs,
+             varied: Sequence[str] = VARIED) -> dict[str, int]:
     """How many of `records` `counted_runs` leaves out, by reason."""
     records = list(records)
     reasons: Counter[str] = Counter()
     for record in records:
         if not accept(record):
-            reasons[(exclusion(record) if accept is matches_current_specs else None) or "not selected"] += 1
-    superseded = sum(1 for r in records if accept(r)) - len(counted_runs(records, accept))
+            reasons[exclusion(record, varied) or "not selected"] += 1
+    superseded = sum(1 for r in records if accept(r)) - len(counted_runs(records, accept, varied))
     if superseded:
         reasons["a later run of the same seed counts instead"] += superseded
     return dict(sorted(reasons.items()))
 
 
-def left_out_line(records: Iterable[RunRecord], accept: Accept = matches_current_specs) -> str | None:
+def left_out_line(records: Iterable[RunRecord], accept: Accept = matches_current_specs,
+                  varied: Sequence[str] = VARIED) -> str | None:
     """`Left out: 3 stored runs (2 older spec files ..., 1 ...).`, or None when every run counts."""
-    reasons = left_out(records, accept)
+    reasons = left_out(records, accept, varied)
     if not reasons:
         return None
     total = sum(reasons.values())
@@ -87,22 +100,23 @@ def embedding_dim(record: RunRecord) -> int | None:
     return config_value(record, "encoder.embedding_dim")
 
 
-def variant_key(record: RunRecord) -> tuple[str, str, str, Any]:
-    """(encoder, task, preset, embedding size): runs of one variant differ only by seed."""
-    return record.encoder, record.task, record.preset, embedding_dim(record)
+def variant_key(record: RunRecord, varied: Sequence[str] = VARIED) -> tuple[Any, ...]:
+    """(encoder, task, preset, the varied keys' values): runs of one variant differ only by seed."""
+    return (record.encoder, record.task, record.preset, *(config_value(record, key) for key in varied))
 
 
-def counted_runs(records: Iterable[RunRecord], accept: Accept = matches_current_specs) -> list[RunRecord]:
+def counted_runs(records: Iterable[RunRecord], accept: Accept = matches_current_specs,
+                 varied: Sequence[str] = VARIED) -> list[RunRecord]:
     """The accepted runs, the latest per (variant, seed), ordered by variant then seed."""
     latest: dict[tuple, RunRecord] = {}
     for record in records:
         if not accept(record):
             continue
-        key = (*variant_key(record), record.seed)
+        key = (*variant_key(record, varied), record.seed)
         kept = latest.get(key)
         if kept is None or (record.created_at, record.run_id) > (kept.created_at, kept.run_id):
             latest[key] = record
-    return [latest[k] for k in sorted(latest, key=lambda k: tuple(str(p) for p in k[:4]) + (k[4],))]
+    return [latest[k] for k in sorted(latest, key=lambda k: tuple(str(p) for p in k[:-1]) + (k[-1],))]
 
 
 def default_embedding_dim(encoder: str, task: str | None = None) -> int | None:
