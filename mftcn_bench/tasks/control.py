@@ -68,7 +68,6 @@ class ControlTask:
     def __init__(self, config: Mapping[str, Any], seed: int) -> None:
         self.config, self.seed = config, seed
         self.device = torch.device("cpu")
-        self.readout: Readout | None = None  # what maps the observation before the policy (none: the embedding)
         dataset = config["dataset"]
         seen_as = {"height": dataset["height"], "width": dataset["width"], **dataset["render"]}
         self.env_config = _table(SuiteConfig, config["name"], "env", {**config["env"], **seen_as})
@@ -96,7 +95,7 @@ class ControlTask:
     def collector(self) -> Collector:
         return collect_episode
 
-    def _env_factory(self, encoder: Encoder):
+    def _env_factory(self, encoder: Encoder, readout: Readout | None = None):
         info = encoder.info
         joint = trains_with_policy(encoder)
 
@@ -106,15 +105,19 @@ class ControlTask:
                                      pixel_clip=PixelClip(info.frames, info.stride))
             return SuiteBatchEnv(self.env_config, num_envs, seed, make_observer(encoder, num_envs),
                                  info.embedding_dim, uses_pixels(encoder), lookback=info.lookback,
-                                 readout=self.readout)
+                                 readout=readout)
 
         trunk = ClipTrunk(encoder.net, info.embedding_dim) if joint else None
         return make_env, trunk
 
     def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path) -> TaskResult:
+        return self._train_and_test(encoder, workdir)
+
+    def _train_and_test(self, encoder: Encoder, workdir: Path, readout: Readout | None = None) -> TaskResult:
+        """PPO on the embedding (mapped by `readout` when given), then the test episodes."""
         from tqdm import tqdm
 
-        make_env, trunk = self._env_factory(encoder)
+        make_env, trunk = self._env_factory(encoder, readout)
         bar = tqdm(desc=f"ppo {self.config['name']}", unit="batch", disable=None, leave=False)
 
         def progress(batch: int, total: int, stats: dict[str, float]) -> None:
@@ -181,8 +184,7 @@ class ProbeStateControlTask(ControlTask):
         regressor = fit_probe(self.probe, self.seed, x_train, y_train, episodes)
         x_test, y_test, _ = probe_split(encoder, dataset, self.probe.camera, "test")
         r2 = r2_score(y_test, regressor.predict(x_test), multioutput="raw_values")
-        self.readout = ProbeReadout(regressor)
-        result = super().evaluate(encoder, dataset, workdir)
+        result = self._train_and_test(encoder, workdir, ProbeReadout(regressor))
         quality = {f"probe_r2_{k}": float(v) for k, v in zip(TARGETS, r2, strict=True)}
         quality["probe_r2_mean"] = float(r2.mean())
         note = (f"policy input: the probe's prediction of the state from [e_t, e_t - e_t-1] (fitted on "
