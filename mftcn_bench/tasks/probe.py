@@ -189,9 +189,14 @@ class CartpoleProbe:
     def collector(self) -> Collector:
         return collect_episode
 
+    def features(self, encoder: Encoder, dataset: MultiViewDataset, split: str) -> tuple[np.ndarray, ...]:
+        """Probe features, targets and each row's episode index for one split (the probe-memory benchmark
+        wraps this to time and size the embedding phase)."""
+        return probe_split(encoder, dataset, self.probe.camera, split)
+
     def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path | None = None) -> TaskResult:
-        x_train, y_train, episodes = probe_split(encoder, dataset, self.probe.camera, "train")
-        x_test, y_test, _ = probe_split(encoder, dataset, self.probe.camera, "test")
+        x_train, y_train, episodes = self.features(encoder, dataset, "train")
+        x_test, y_test, _ = self.features(encoder, dataset, "test")
         regressor = fit_probe(self.probe, self.seed, x_train, y_train, episodes)
         predicted = regressor.predict(x_test)
         mse = mean_squared_error(y_test, predicted, multioutput="raw_values")
