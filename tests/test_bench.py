@@ -77,6 +77,21 @@ def test_probe_dataset_subset_links_the_chunks_of_the_first_episodes(tmp_path):
     assert np.all(episode.frames[0, 1] == episode.frames[0, 1, 0, 0])  # constant within a frame
 
 
+def test_probe_embedding_phase_runs_the_task_as_a_run_does(tmp_path):
+    """`measure_embedding` wraps the task's own feature extraction: a change to `CartpoleProbe` that the
+    benchmark no longer matches fails here, not only in `mftcn-bench bench`."""
+    import torch
+
+    threads = torch.get_num_threads()  # measure_embedding pins one thread, as in its child process
+    root = bench_probe.write_dataset(tmp_path / "datasets", 2, 1, 30, 32)
+    try:
+        memory = bench_probe.measure_embedding(root)
+    finally:
+        torch.set_num_threads(threads)
+    assert memory.frames == 90
+    assert memory.feature_bytes > 0 and memory.embed_peak > 0 and memory.fit_peak > 0
+
+
 def test_bench_command_prints_and_writes_the_table(tmp_path, capsys):
     out = tmp_path / "perf.md"
     assert main(["bench", "--quick", "--only", "streaming", "--out", str(out)]) == 0
