@@ -134,7 +134,9 @@ def test_swingup_limits_counts_each_ppo_budget_as_its_own_row(tmp_path):
             make_record("true-state-noisy", "swingup", 0, {"return_mean": 300.0, "return_std": 9.0},
                         config=resolved("true-state-noisy", "swingup", [("encoder.model.noise_std", [0.1] * 5)])),
             make_record("mftcn5", "swingup-probe-state", 0, {"return_mean": 400.0, "return_std": 30.0},
-                        config=resolved("mftcn5", "swingup-probe-state"))]
+                        config=resolved("mftcn5", "swingup-probe-state")),
+            make_record("pve", "swingup", 0, {"return_mean": 315.0, "return_std": 38.0},
+                        config=resolved("pve", "swingup"))]
     for run in runs:
         store.put(run)
     text = report(store, ["swingup-limits"])
@@ -143,5 +145,7 @@ def test_swingup_limits_counts_each_ppo_budget_as_its_own_row(tmp_path):
     assert "400.00 " in line_of(text, "the probe's predicted state", "| 1 M ")
     assert "- (701.30)" in line_of(text, "mfTCN5 e_t", "| 3 M ")
     assert "Left out: 1 stored run (1: older spec files or other overrides)" in text  # the other noise
+    assert NOT_IN_PAPER not in text and "315.00" not in text  # another encoder's run is the swingup table's
     swingup = report(store, ["swingup"])
     assert "506.00 " in line_of(swingup, "True State") and "839.00" not in swingup
+    assert "315.00 " in line_of(swingup, "PVE")

@@ -49,6 +49,9 @@ class PaperTable:
     decimals: int = 4
     # Config keys whose overridden values a run may have and still count (each value is its own row).
     varied: tuple[str, ...] = VARIED
+    # Whether runs that no row covers follow as "(not in paper)" rows. False for a table of chosen analyses,
+    # whose tasks' other runs (other encoders) are rows of the paper tables already.
+    other_runs: bool = True
 
     @property
     def tasks(self) -> tuple[str, ...]:
@@ -197,9 +200,11 @@ SWINGUP_LIMITS = PaperTable(
         for budget in budgets),
     note="Runs of the quick preset (encoders trained on the quick dataset) with PPO's budget as the row says "
          "(`--set task.ppo.frames=3000000 --set task.ppo.eval_episodes=100` for 3 M), and of the paper preset. "
-         "The paper's figures (in brackets) are its rows at its budget.",
+         "The paper's figures (in brackets) are its rows at its budget. Other encoders' swing-up runs are in "
+         "the swing-up table.",
     decimals=2,
     varied=(*VARIED, _FRAMES, "task.ppo.eval_episodes"),
+    other_runs=False,
 )
 
 TABLES: dict[str, PaperTable] = {t.name: t for t in (PROBE, SWINGUP, CHEETAH, POURING, POURING_ATTRIBUTES,

@@ -3,7 +3,8 @@ beside the paper's, as markdown or LaTeX.
 
 What each table holds is data in `paper_tables`; this module fills its rows from the store. A paper row
 with no stored run shows "-" for ours. Stored runs of a table's tasks that no paper row covers (another
-encoder, another embedding size) follow as extra rows marked "(not in paper)".
+encoder, another embedding size) follow as extra rows marked "(not in paper)", except in a table of chosen
+analyses (`PaperTable.other_runs` False).
 """
 
 from __future__ import annotations
@@ -82,8 +83,8 @@ def _by_preset(runs: Iterable[RunRecord]) -> dict[str, list[RunRecord]]:
 def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | None = None,
                accept: Accept | None = None) -> list[ReportRow]:
     """The table's rows from `records`: each paper row once per preset that has runs for it (or once with
-    "-" when none has), then the runs no paper row covers. By default the runs of today's specs count,
-    with at most the table's `varied` keys overridden."""
+    "-" when none has), then (if the table shows them) the runs no paper row covers. By default the runs of
+    today's specs count, with at most the table's `varied` keys overridden."""
     accept = accept or current_specs_varying(table.varied)
     runs = [r for r in counted_runs(records, accept, table.varied)
             if r.task in table.tasks and (preset is None or r.preset == preset)]
@@ -101,7 +102,7 @@ def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | No
                                   _stats(table, group), paper_row.paper, _code(group)))
     extra: dict[tuple, list[RunRecord]] = defaultdict(list)
     for record in runs:
-        if record.run_id not in used:
+        if table.other_runs and record.run_id not in used:
             extra[variant_key(record, table.varied)].append(record)
     blank = ("",) * (len(table.label_headers) - 1)
     for group in extra.values():
