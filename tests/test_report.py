@@ -146,6 +146,7 @@ def test_swingup_limits_counts_each_ppo_budget_as_its_own_row(tmp_path):
     assert "- (701.30)" in line_of(text, "mfTCN5 e_t", "| 3 M ")
     assert "Left out: 1 stored run (1: older spec files or other overrides)" in text  # the other noise
     assert NOT_IN_PAPER not in text and "315.00" not in text  # another encoder's run is the swingup table's
+    assert "Not shown: 1 counted run that no row covers (pve on swingup)." in text
     swingup = report(store, ["swingup"])
     assert "506.00 " in line_of(swingup, "True State") and "839.00" not in swingup
     assert "315.00 " in line_of(swingup, "PVE")

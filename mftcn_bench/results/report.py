@@ -4,7 +4,7 @@ beside the paper's, as markdown or LaTeX.
 What each table holds is data in `paper_tables`; this module fills its rows from the store. A paper row
 with no stored run shows "-" for ours. Stored runs of a table's tasks that no paper row covers (another
 encoder, another embedding size) follow as extra rows marked "(not in paper)", except in a table of chosen
-analyses (`PaperTable.other_runs` False).
+analyses (`PaperTable.other_runs` False), which names them in a line instead.
 """
 
 from __future__ import annotations
@@ -80,36 +80,59 @@ def _by_preset(runs: Iterable[RunRecord]) -> dict[str, list[RunRecord]]:
     return dict(sorted(groups.items()))
 
 
+def _counted(table: PaperTable, records: Iterable[RunRecord], preset: str | None,
+             accept: Accept | None) -> list[RunRecord]:
+    accept = accept or current_specs_varying(table.varied)
+    return [r for r in counted_runs(records, accept, table.varied)
+            if r.task in table.tasks and (preset is None or r.preset == preset)]
+
+
+def _uncovered(table: PaperTable, runs: Sequence[RunRecord]) -> dict[tuple, list[RunRecord]]:
+    """The counted runs that no row of `table` covers, by variant."""
+    groups: dict[tuple, list[RunRecord]] = defaultdict(list)
+    for record in runs:
+        if not any(_row_matches(row, record) for row in table.rows):
+            groups[variant_key(record, table.varied)].append(record)
+    return groups
+
+
 def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | None = None,
                accept: Accept | None = None) -> list[ReportRow]:
     """The table's rows from `records`: each paper row once per preset that has runs for it (or once with
     "-" when none has), then (if the table shows them) the runs no paper row covers. By default the runs of
     today's specs count, with at most the table's `varied` keys overridden."""
-    accept = accept or current_specs_varying(table.varied)
-    runs = [r for r in counted_runs(records, accept, table.varied)
-            if r.task in table.tasks and (preset is None or r.preset == preset)]
-    used: set[str] = set()
+    runs = _counted(table, records, preset, accept)
     rows: list[ReportRow] = []
     for paper_row in table.rows:
-        matched = [r for r in runs if _row_matches(paper_row, r)]
-        used.update(r.run_id for r in matched)
-        groups = _by_preset(matched)
+        groups = _by_preset(r for r in runs if _row_matches(paper_row, r))
         if not groups:
             rows.append(ReportRow(paper_row.labels, paper_row.encoder, paper_row.task, preset, 0,
                                   (None,) * len(table.columns), paper_row.paper))
         for preset_name, group in groups.items():
             rows.append(ReportRow(paper_row.labels, paper_row.encoder, paper_row.task, preset_name, len(group),
                                   _stats(table, group), paper_row.paper, _code(group)))
-    extra: dict[tuple, list[RunRecord]] = defaultdict(list)
-    for record in runs:
-        if table.other_runs and record.run_id not in used:
-            extra[variant_key(record, table.varied)].append(record)
+    if not table.other_runs:
+        return rows
     blank = ("",) * (len(table.label_headers) - 1)
-    for group in extra.values():
+    for group in _uncovered(table, runs).values():
         first = group[0]
         rows.append(ReportRow((NOT_IN_PAPER, *blank), variant_label(first), first.task, first.preset, len(group),
                               _stats(table, group), None, _code(group)))
     return rows
+
+
+def not_shown_line(table: PaperTable, records: Iterable[RunRecord], preset: str | None = None,
+                   accept: Accept | None = None) -> str | None:
+    """For a table that shows no "(not in paper)" rows: `Not shown: 2 counted runs that no row covers
+    (pve on swingup, ...).`, so that nothing a table leaves aside goes unsaid; None when there are none."""
+    if table.other_runs:
+        return None
+    groups = _uncovered(table, _counted(table, records, preset, accept))
+    if not groups:
+        return None
+    total = sum(len(g) for g in groups.values())
+    names = ", ".join(f"{variant_label(g[0])} on {g[0].task}" for g in groups.values())
+    return f"Not shown: {total} counted run{'s' if total > 1 else ''} that no row covers ({names})."
 
 
 _LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$",
@@ -166,6 +189,7 @@ def report(store: ResultStore, names: Sequence[str], preset: str | None = None, 
         parts.append(render(table, table_rows(table, records, preset, accept), fmt))
         skipped = left_out_line([r for r in records if r.task in table.tasks],
                                 accept or current_specs_varying(table.varied), table.varied)
-        if skipped:
-            parts.append(f"% {skipped}" if fmt == "latex" else skipped)
+        for line in (skipped, not_shown_line(table, records, preset, accept)):
+            if line:
+                parts.append(f"% {line}" if fmt == "latex" else line)
     return "\n\n".join(parts)
