@@ -71,6 +71,16 @@ def test_dataset_ids_follow_the_collectors_code(tmp_path, monkeypatch):
     assert collector_id() != first
 
 
+def test_run_ids_do_not_follow_the_report_layer():
+    """The runner draws each run's curve (`results.figure`) but its closure, which keys every run, holds
+    none of the report's modules: editing a paper table or a board re-keys no run."""
+    runner = {m for m, _ in identity._closure(("mftcn_bench.run.runner",), frozenset({"mftcn_bench"}))}
+    assert "mftcn_bench.results.figure" in runner and "mftcn_bench.results.store" in runner
+    report = {"mftcn_bench.results.paper_tables", "mftcn_bench.results.plots", "mftcn_bench.results.report",
+              "mftcn_bench.results.selection", "mftcn_bench.results.leaderboard"}
+    assert not runner & report, sorted(runner & report)
+
+
 def test_code_identity_does_not_hash_how_it_is_installed():
     code = identity.code_identity("mftcn_bench.encoders.mftcn")
     assert "editable" not in code.key() and code.distribution == "mftcn-bench"

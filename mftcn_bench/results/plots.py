@@ -1,4 +1,4 @@
-"""Plots (PNG, matplotlib's Agg backend) from stored results: learning curves per task, probe MSE vs
+"""Plots (PNG, via `figure`) from stored results: learning curves per task, probe MSE vs
 lookback, pouring error vs lookback.
 
 Seeds are aggregated as in the tables: mean, and a band or error bar of one sample std (ddof=1). Learning
@@ -11,16 +11,13 @@ from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402 - the backend is chosen first
-import numpy as np  # noqa: E402
-
-from mftcn_bench.results.paper_tables import PROBE  # noqa: E402
-from mftcn_bench.results.selection import Accept, counted_runs, matches_current_specs, variant_key, variant_label  # noqa: E402
-from mftcn_bench.results.stats import seed_stats  # noqa: E402
-from mftcn_bench.results.store import RunRecord  # noqa: E402
+from mftcn_bench.results.figure import plt, save_figure
+from mftcn_bench.results.paper_tables import PROBE
+from mftcn_bench.results.selection import Accept, counted_runs, matches_current_specs, variant_key, variant_label
+from mftcn_bench.results.stats import seed_stats
+from mftcn_bench.results.store import RunRecord
 
 CURVE = "train"
 GRID_POINTS = 200
@@ -50,13 +47,6 @@ def mean_curve(curves: Sequence[dict[str, list[float]]], x: str = "frames",
     values = np.stack([np.interp(grid, np.asarray(c[x], float), np.asarray(c[y], float)) for c in usable])
     std = values.std(axis=0, ddof=1) if len(usable) >= 2 else None
     return grid, values.mean(axis=0), std
-
-
-def _save(fig, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    plt.close(fig)
-    return path
 
 
 def _group(runs: Iterable[RunRecord]) -> dict[tuple, list[RunRecord]]:
@@ -90,21 +80,8 @@ def plot_curves(records: Iterable[RunRecord], out: Path, task: str | None = None
         ax.set(xlabel="environment frames", ylabel="episode return (training)",
                title=f"{task_name}, preset {preset}: mean over seeds, band ±1 sample std")
         ax.legend(fontsize="small")
-        written.append(_save(fig, out / f"curves-{task_name}-{preset}.png"))
+        written.append(save_figure(fig, out / f"curves-{task_name}-{preset}.png"))
     return written
-
-
-def plot_run_curve(curve: dict[str, list[float]], path: Path, title: str) -> Path:
-    """One run's training return against frames and against wall time, side by side (`curve.png` in the
-    run's folder)."""
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2), sharey=True)
-    axes[0].plot(np.asarray(curve["frames"]) / 1e6, curve["return"])
-    axes[0].set(xlabel="frames (millions)", ylabel="training return")
-    axes[1].plot(np.asarray(curve["wall_s"]) / 60, curve["return"])
-    axes[1].set(xlabel="wall time (min)")
-    fig.suptitle(title)
-    fig.tight_layout()
-    return _save(fig, path)
 
 
 def _lookback_plot(runs: Sequence[RunRecord], metrics: Sequence[str], ylabel: str, title: str,
@@ -140,7 +117,7 @@ def _lookback_plot(runs: Sequence[RunRecord], metrics: Sequence[str], ylabel: st
         ax.set_yscale("log")
     ax.set(xlabel="lookback (frames)", ylabel=ylabel, title=title)
     ax.legend(fontsize="small")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _paper_probe_reference() -> dict[tuple[str, int], dict[int, float]]:

@@ -304,7 +304,7 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
         raise
     done = time.monotonic()
     if "train" in result.curves:  # the learning curve beside the result (matplotlib only when needed)
-        from mftcn_bench.results.plots import plot_run_curve
+        from mftcn_bench.results.figure import plot_run_curve
 
         plot_run_curve(result.curves["train"], run_dir / "curve.png", f"{request.encoder} on {request.task}")
     record_id = run_id
