@@ -128,3 +128,22 @@ def test_image_sized_offscreen_buffer_renders_the_same_pixels():
             plain.physics.set_state(ours.physics.get_state())
         assert np.array_equal(renderer.render(), np.stack([c.render() for c in cameras]))
         ours.step(rng.uniform(-1, 1, 1))
+
+
+def test_the_rendering_only_reference_renders_what_mftcn5_sees_and_embeds_nothing():
+    """The PPO-on-pixels target compares mfTCN5's rollout with the same loop minus the encoder: the same
+    environments rendering the same frames per agent step, observations of the same size, all zero."""
+    import dataclasses
+
+    sizes = dataclasses.replace(bench.QUICK, ppo_envs=2, ppo_pixel_steps=2)
+    subject, repeat = bench._suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps)
+    reference, same_repeat = bench._suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, render_only=True)
+    try:
+        assert repeat == same_repeat == 8
+        assert reference.env.render_steps == subject.env.render_steps == 5  # lookback 5 of 8 repeats
+        observed = next(iter(reference))["observation"]
+        assert observed.shape == next(iter(subject))["observation"].shape == (2, 2, 32)
+        assert not observed.any()
+    finally:
+        subject.shutdown()
+        reference.shutdown()
