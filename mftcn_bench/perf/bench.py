@@ -358,7 +358,7 @@ def bench_ppo_pixels(sizes: Sizes) -> list[BenchRow]:
                       "render": _suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, render_only=True),
                       "state": _suite_collector("true-state", sizes, sizes.ppo_pixel_steps)}, sizes)
     figure = f"PPO collection on mfTCN5 embeddings (96x48, {sizes.ppo_envs} envs)"
-    note = "5 rendered frames and 5 streaming steps per agent step (action repeat 8)"
+    note = "5 rendered frames and 5 base passes per agent step, the head once (action repeat 8)"
     return [BenchRow(figure, rates["mftcn5"], "frames/s", "the same loop, rendering only", rates["render"],
                      rates["mftcn5"] / rates["render"], Target(">=", 0.5), note),
             BenchRow(figure, rates["mftcn5"], "frames/s", "true state (no rendering)", rates["state"],
