@@ -15,6 +15,14 @@ import torch
 from mftcn_bench.perf import bench
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_configure(config: pytest.Config) -> None:
+    """Serial, whatever `addopts` says: the test suite runs one xdist worker per core, and a figure
+    timed beside another worker would measure the contention (pytest-benchmark turns itself off)."""
+    config.option.numprocesses = 0
+    config.option.dist = "no"
+
+
 @pytest.fixture(autouse=True, scope="session")
 def one_thread():
     from mftcn_bench.sim.rendering import ensure_gl
