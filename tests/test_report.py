@@ -150,3 +150,31 @@ def test_swingup_limits_counts_each_ppo_budget_as_its_own_row(tmp_path):
     swingup = report(store, ["swingup"])
     assert "506.00 " in line_of(swingup, "True State") and "839.00" not in swingup
     assert "315.00 " in line_of(swingup, "PVE")
+
+
+def test_the_from_scratch_ablation_is_its_own_probe_row_and_other_overrides_are_labelled():
+    """The probe table varies the base: the small-cnn ablation fills its row and never the frozen-base row
+    of the same size and lookback; a run with one of those keys overridden alone is a labelled extra row."""
+    scratch = [("encoder.model.base.name", "small-cnn"), ("encoder.model.adapter_channels", 0),
+               ("encoder.train.lr", 0.0001)]
+    runs = [make_record("mftcn4", "cartpole-probe", 0, {"average": 0.6}, config=probe_config("mftcn4")),
+            *(make_record("mftcn4", "cartpole-probe", seed, {"average": value},
+                          config=resolved("mftcn4", "cartpole-probe", scratch))
+              for seed, value in ((0, 3.7), (1, 3.9))),
+            make_record("mftcn4", "cartpole-probe", 0, {"average": 5.0},
+                        config=resolved("mftcn4", "cartpole-probe", scratch[2:]))]
+    rows = {r.labels: r for r in table_rows(TABLES["probe"], runs)}
+    assert rows[("32", "4")].seeds == 1 and rows[("32", "4")].stats[0].mean == 0.6
+    ablation = rows[("32", "4, from scratch")]
+    assert ablation.seeds == 2 and ablation.stats[0].mean == pytest.approx(3.8) and ablation.paper is None
+    (extra,) = [r for r in rows.values() if r.labels[0] == NOT_IN_PAPER]
+    assert extra.encoder == "mftcn4 (train.lr=0.0001)" and extra.stats[0].mean == 5.0
+
+
+def test_a_3m_run_counts_in_the_3m_row_only_with_the_papers_test_episodes(tmp_path):
+    store = ResultStore(tmp_path / "results.sqlite")
+    store.put(make_record("true-state", "swingup", 0, {"return_mean": 820.0, "return_std": 0.2},
+                          config=resolved("true-state", "swingup", [("task.ppo.frames", 3_000_000)])))
+    text = report(store, ["swingup-limits"])
+    assert "- (861.41)" in line_of(text, "| True state   ", "| 3 M ")
+    assert "Not shown: 1 counted run that no row covers (true-state (task.ppo.frames=3000000) on swingup)." in text

@@ -21,12 +21,13 @@ from mftcn_bench.results.paper_tables import TABLES, PaperRow, PaperTable
 from mftcn_bench.results.selection import (
     VARIED,
     Accept,
+    SpecDefaults,
     code_label,
     config_value,
     counted_runs,
     current_specs_varying,
-    default_embedding_dim,
     left_out_line,
+    lookup,
     matches_current_specs,
     variant_key,
     variant_label,
@@ -55,13 +56,14 @@ class ReportRow:
     code: str = "-"   # the encoder's distribution and version (`selection.code_label`) of the rows' runs
 
 
-def _row_matches(row: PaperRow, record: RunRecord) -> bool:
+def _row_matches(table: PaperTable, row: PaperRow, record: RunRecord, defaults: SpecDefaults) -> bool:
     if record.encoder != row.encoder or record.task != row.task:
         return False
-    where = dict(row.where)
-    default_dim = default_embedding_dim(row.encoder, row.task)
-    if "encoder.embedding_dim" not in where and default_dim is not None:
-        where["encoder.embedding_dim"] = default_dim  # an overridden size is another row
+    default = defaults(record)
+    if default is None:
+        return False
+    # A varied key the row does not name must have its default: an overridden value is another row.
+    where = {key: lookup(default, key) for key in table.varied} | dict(row.where)
     return all(config_value(record, key) == value for key, value in where.items())
 
 
@@ -87,11 +89,12 @@ def _counted(table: PaperTable, records: Iterable[RunRecord], preset: str | None
             if r.task in table.tasks and (preset is None or r.preset == preset)]
 
 
-def _uncovered(table: PaperTable, runs: Sequence[RunRecord]) -> dict[tuple, list[RunRecord]]:
+def _uncovered(table: PaperTable, runs: Sequence[RunRecord],
+               defaults: SpecDefaults) -> dict[tuple, list[RunRecord]]:
     """The counted runs that no row of `table` covers, by variant."""
     groups: dict[tuple, list[RunRecord]] = defaultdict(list)
     for record in runs:
-        if not any(_row_matches(row, record) for row in table.rows):
+        if not any(_row_matches(table, row, record, defaults) for row in table.rows):
             groups[variant_key(record, table.varied)].append(record)
     return groups
 
@@ -102,9 +105,10 @@ def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | No
     "-" when none has), then (if the table shows them) the runs no paper row covers. By default the runs of
     today's specs count, with at most the table's `varied` keys overridden."""
     runs = _counted(table, records, preset, accept)
+    defaults = SpecDefaults()
     rows: list[ReportRow] = []
     for paper_row in table.rows:
-        groups = _by_preset(r for r in runs if _row_matches(paper_row, r))
+        groups = _by_preset(r for r in runs if _row_matches(table, paper_row, r, defaults))
         if not groups:
             rows.append(ReportRow(paper_row.labels, paper_row.encoder, paper_row.task, preset, 0,
                                   (None,) * len(table.columns), paper_row.paper))
@@ -114,10 +118,10 @@ def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | No
     if not table.other_runs:
         return rows
     blank = ("",) * (len(table.label_headers) - 1)
-    for group in _uncovered(table, runs).values():
+    for group in _uncovered(table, runs, defaults).values():
         first = group[0]
-        rows.append(ReportRow((NOT_IN_PAPER, *blank), variant_label(first), first.task, first.preset, len(group),
-                              _stats(table, group), None, _code(group)))
+        rows.append(ReportRow((NOT_IN_PAPER, *blank), variant_label(first, table.varied), first.task, first.preset,
+                              len(group), _stats(table, group), None, _code(group)))
     return rows
 
 
@@ -127,11 +131,11 @@ def not_shown_line(table: PaperTable, records: Iterable[RunRecord], preset: str 
     (pve on swingup, ...).`, so that nothing a table leaves aside goes unsaid; None when there are none."""
     if table.other_runs:
         return None
-    groups = _uncovered(table, _counted(table, records, preset, accept))
+    groups = _uncovered(table, _counted(table, records, preset, accept), SpecDefaults())
     if not groups:
         return None
     total = sum(len(g) for g in groups.values())
-    names = ", ".join(f"{variant_label(g[0])} on {g[0].task}" for g in groups.values())
+    names = ", ".join(f"{variant_label(g[0], table.varied)} on {g[0].task}" for g in groups.values())
     return f"Not shown: {total} counted run{'s' if total > 1 else ''} that no row covers ({names})."
 
 

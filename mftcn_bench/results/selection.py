@@ -9,7 +9,7 @@ such runs of one variant (encoder, task, preset, the varied keys' values) and se
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from mftcn_bench.core import registry
@@ -88,16 +88,45 @@ def code_label(record: RunRecord) -> str:
 
 def config_value(record: RunRecord, dotted: str) -> Any:
     """A value of the run's resolved config by dotted key (`encoder.embedding_dim`); None if absent."""
-    node: Any = record.config
+    return lookup(record.config, dotted)
+
+
+def lookup(config: Mapping[str, Any], dotted: str) -> Any:
+    """A value of a resolved config (`{"encoder": ..., "task": ...}`) by dotted key; None if absent."""
+    node: Any = config
     for part in dotted.split("."):
-        if not isinstance(node, dict) or part not in node:
+        if not isinstance(node, Mapping) or part not in node:
             return None
         node = node[part]
     return node
 
 
-def embedding_dim(record: RunRecord) -> int | None:
-    return config_value(record, "encoder.embedding_dim")
+class SpecDefaults:
+    """The config a run's encoder, task and preset resolve to today without overrides, one resolution per
+    (encoder, task, preset): what a table compares each run's varied keys with."""
+
+    def __init__(self) -> None:
+        self._configs: dict[tuple[str, str, str | None], dict[str, Any] | None] = {}
+
+    def __call__(self, record: RunRecord) -> dict[str, Any] | None:
+        key = (record.encoder, record.task, record.preset)
+        if key not in self._configs:
+            try:
+                encoder, task = registry.get("encoders", record.encoder), registry.get("tasks", record.task)
+                self._configs[key] = resolve_config(encoder.spec, task.spec, record.preset)[1]
+            except (BenchError, KeyError, TypeError):
+                self._configs[key] = None
+        return self._configs[key]
+
+
+def overridden(record: RunRecord, varied: Sequence[str] = VARIED,
+               defaults: SpecDefaults | None = None) -> dict[str, Any]:
+    """The `varied` keys whose value in the run is not the one today's specs give without overrides."""
+    default = (defaults or SpecDefaults())(record)
+    if default is None:
+        return {}
+    return {key: value for key in varied
+            if (value := config_value(record, key)) is not None and value != lookup(default, key)}
 
 
 def variant_key(record: RunRecord, varied: Sequence[str] = VARIED) -> tuple[Any, ...]:
@@ -119,21 +148,9 @@ def counted_runs(records: Iterable[RunRecord], accept: Accept = matches_current_
     return [latest[k] for k in sorted(latest, key=lambda k: tuple(str(p) for p in k[:-1]) + (k[-1],))]
 
 
-def default_embedding_dim(encoder: str, task: str | None = None) -> int | None:
-    """The embedding size the encoder has on `task` without overrides: its spec file's, or the task's
-    `[encoder_defaults.<encoder>]` (None for an encoder or task not installed)."""
-    try:
-        dim = registry.get("encoders", encoder).spec.embedding_dim
-        if task is not None:
-            dim = registry.get("tasks", task).spec.encoder_defaults.get(encoder, {}).get("embedding_dim", dim)
-        return dim
-    except BenchError:
-        return None
-
-
-def variant_label(record: RunRecord) -> str:
-    """The encoder's name, with the embedding size when it was overridden."""
-    dim, default = embedding_dim(record), default_embedding_dim(record.encoder, record.task)
-    if dim is not None and default is not None and dim != default:
-        return f"{record.encoder} (embedding {dim})"
-    return record.encoder
+def variant_label(record: RunRecord, varied: Sequence[str] = VARIED) -> str:
+    """The encoder's name, with those of the `varied` keys that were overridden: `mftcn4 (embedding 8)`,
+    `mftcn4 (model.base.name=small-cnn)`."""
+    parts = [f"embedding {value}" if key == "encoder.embedding_dim" else f"{key.removeprefix('encoder.')}={value}"
+             for key, value in overridden(record, varied).items()]
+    return f"{record.encoder} ({', '.join(parts)})" if parts else record.encoder
