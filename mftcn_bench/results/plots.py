@@ -125,6 +125,8 @@ def _paper_probe_reference() -> dict[tuple[str, int], dict[int, float]]:
     columns = [c.metric for c in PROBE.columns]
     out: dict[tuple[str, int], dict[int, float]] = defaultdict(dict)
     for row in PROBE.rows:
+        if row.paper is None:  # a row of ours only (the from-scratch ablation)
+            continue
         dim, look = row.labels
         for i, metric in enumerate(columns):
             out[(metric, int(dim))][int(look)] = row.paper[i]
