@@ -119,10 +119,9 @@ class SpecDefaults:
         return self._configs[key]
 
 
-def overridden(record: RunRecord, varied: Sequence[str] = VARIED,
-               defaults: SpecDefaults | None = None) -> dict[str, Any]:
+def overridden(record: RunRecord, varied: Sequence[str] = VARIED) -> dict[str, Any]:
     """The `varied` keys whose value in the run is not the one today's specs give without overrides."""
-    default = (defaults or SpecDefaults())(record)
+    default = SpecDefaults()(record)
     if default is None:
         return {}
     return {key: value for key in varied
