@@ -467,12 +467,8 @@ def test_checkpoint_trained_at_another_resolution(capsys, finished):
 
     home = BenchHome.resolve(finished)
     prepared = prepare(RunRequest("mftcn1", "cartpole-probe", "smoke", 0, tuple(overrides)))
-    from mftcn_bench.core.specs import encoder_spec_from_config
-
-    spec = encoder_spec_from_config(prepared.encoder_entry.description, prepared.config["encoder"])
-    encoder = prepared.encoder_entry.load()(spec, image_shape=(32, 48), seed=0)
     dataset = prepare_dataset(prepared, home, show_progress=False)
-    workdir = encoder_workdir(prepared, dataset, home, encoder.frozen_base().identity())
+    workdir = encoder_workdir(prepared, dataset, home)
     workdir.mkdir(parents=True)
     shutil.copy(only(finished, "encoders/mftcn1-*/model.pt"), workdir / "model.pt")
     shutil.copy(only(finished, "encoders/mftcn1-*/fit.json"), workdir / "fit.json")  # marks it finished

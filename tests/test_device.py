@@ -57,7 +57,8 @@ def test_a_gpu_run_never_shares_an_id_or_an_encoder_with_a_cpu_run(monkeypatch):
     from mftcn_bench.core import identity
 
     # The CPU is the reference: its ids are those computed without a placement.
-    assert run_id_of(prepared, "fp") == identity.run_id(prepared.config, prepared.preset, 0, "fp", prepared.code)
+    assert run_id_of(prepared, "fp") == identity.run_id(prepared.config, prepared.preset, 0, "fp", prepared.code,
+                                                          base=prepared.base)
 
 
 def test_built_in_encoders_that_can_move_declare_it():

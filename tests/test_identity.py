@@ -71,6 +71,27 @@ def test_dataset_ids_follow_the_collectors_code(tmp_path, monkeypatch):
     assert collector_id() != first
 
 
+def test_a_base_weights_file_replaced_at_the_same_path_keys_new_runs(tmp_path):
+    """The config names a weights file by its path; the run id and the encoder key hold its checksum, so
+    other weights at that path are never served the stored result of the old ones."""
+    from tests.test_inception import perturbed_module, torchvision_file
+
+    path = torchvision_file(tmp_path, perturbed_module(seed=0))
+
+    def prepared():
+        return prepare(RunRequest("inception", "pouring", "smoke", 0,
+                                  (("encoder.model.base.weights", str(path)), ("encoder.model.base.input_size", 75))))
+
+    first = prepared()
+    assert first.base is not None and len(first.base["weights_sha256"]) == 64
+    assert run_id_of(prepared(), "fp") == run_id_of(first, "fp")
+    torchvision_file(tmp_path, perturbed_module(seed=1))  # the same file name, other weights
+    replaced = prepared()
+    assert replaced.config == first.config and replaced.base != first.base
+    assert run_id_of(replaced, "fp") != run_id_of(first, "fp")
+    assert encoder_key_of(replaced, "fp") != encoder_key_of(first, "fp")
+
+
 def test_run_ids_do_not_follow_the_report_layer():
     """The runner draws each run's curve (`results.figure`) but its closure, which keys every run, holds
     none of the report's modules: editing a paper table or a board re-keys no run."""

@@ -238,11 +238,14 @@ def run_code(encoder_class: type, task: object) -> RunCode:
 
 
 def run_id(config: Mapping[str, Any], preset: str, seed: int, dataset_fingerprint: str, code: RunCode,
-           placement: Mapping[str, Any] | None = None) -> str:
+           placement: Mapping[str, Any] | None = None, base: Mapping[str, Any] | None = None) -> str:
     """One (encoder, task, preset, seed) run: the resolved config, the dataset and all the code involved,
-    and (off the CPU, as `encoder_fit_key`) the device it computed on."""
+    (off the CPU, as `encoder_fit_key`) the device it computed on, and the encoder's frozen base with its
+    weights' checksum (the config names a weights file only by its path)."""
     inputs = {"kind": "run", "config": dict(config), "preset": preset, "seed": seed,
               "dataset": dataset_fingerprint, "code": code.key(), "libraries": library_versions()}
+    if base is not None:
+        inputs["base"] = dict(base)
     if placement is not None and placement.get("device") != "cpu":
         inputs["placement"] = dict(placement)
     return content_hash(inputs)

@@ -119,8 +119,14 @@ class SmallCNN(nn.Module):
         return self.layers(x)
 
 
+def _checksum(path: Path) -> str:
+    """The file's sha256, hashed again when its size or modification time changed (a file replaced in place)."""
+    stat = path.stat()
+    return _checksum_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+
+
 @cache
-def _checksum(path: str) -> str:
+def _checksum_of(path: str, size: int, mtime_ns: int) -> str:
     return file_sha256(Path(path))
 
 
@@ -154,7 +160,7 @@ class EfficientNetLite0Base(nn.Module):
         self.blocks = nn.ModuleList(net._blocks[: config.layer + 1])
         self.resize = config.resize
         self.out_channels = LITE0_CHANNELS[config.layer]
-        self.weights_sha256 = _checksum(str(path))
+        self.weights_sha256 = _checksum(Path(path))
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         x = self.stem(_resized(to_unit_range(images), self.resize))
@@ -179,7 +185,7 @@ class InceptionV3Base(nn.Module):
         load_torchvision_weights(self.net, path)
         self.input_size = config.input_size
         self.out_channels = INCEPTION_CHANNELS
-        self.weights_sha256 = _checksum(str(path))
+        self.weights_sha256 = _checksum(Path(path))
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         size = self.input_size

@@ -104,8 +104,9 @@ def weights_help() -> str:
     return (f"give the path of torchvision's inception_v3 IMAGENET1K_V1 state_dict ({WEIGHTS_FILE}, from "
             f"https://download.pytorch.org/models/{WEIGHTS_FILE}) as encoder.model.base.weights, e.g. save it as "
             f"~/.mftcn-bench/weights/{WEIGHTS_FILE} and run `mftcn-bench run --encoder inception --set "
-            f"encoder.model.base.weights=~/.mftcn-bench/weights/{WEIGHTS_FILE}` (any encoder with "
-            f"encoder.model.base.name=inception-v3 takes the same key)")
+            f"encoder.model.base.weights=~/.mftcn-bench/weights/{WEIGHTS_FILE}` (a time-contrastive encoder on "
+            f"this base names the file in its spec's [model.base] table, a variant file that extends it: "
+            f"docs/ENCODERS.md)")
 
 
 def checked_weights_path(weights: str) -> Path:

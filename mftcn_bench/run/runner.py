@@ -72,21 +72,22 @@ class PreparedRun:
     code: identity.RunCode
     needs_fit: bool = True  # asked of the untrained encoder built in `prepare` (True when none was built)
     placement: Placement = CPU  # the device the run computes on, resolved in `prepare`
+    base: Mapping[str, Any] | None = None  # that encoder's frozen base, weights' checksum included (None: no
+    # frozen base, or a task that names no frame size, so no encoder was built in `prepare`)
 
 
 def run_id_of(prepared: PreparedRun, dataset_fingerprint: str) -> str:
     """The id of `prepared` on the dataset with `dataset_fingerprint`."""
     return identity.run_id(prepared.config, prepared.preset, prepared.request.seed, dataset_fingerprint,
-                           prepared.code, prepared.placement.identity())
+                           prepared.code, prepared.placement.identity(), prepared.base)
 
 
-def encoder_key_of(prepared: PreparedRun, dataset_fingerprint: str,
-                   base_identity: Mapping[str, Any] | None = None, placement: Placement | None = None) -> str:
+def encoder_key_of(prepared: PreparedRun, dataset_fingerprint: str, placement: Placement | None = None) -> str:
     """The key of the trained encoder that `prepared` fits or reuses: on `placement`, where it trains (by
     default the run's; the CPU for an encoder that cannot move, see `place_encoder`)."""
     where = prepared.placement if placement is None else placement
     return identity.encoder_fit_key(prepared.config["encoder"], dataset_fingerprint, prepared.request.seed,
-                                    prepared.code.encoder, base_identity, where.identity())
+                                    prepared.code.encoder, prepared.base, where.identity())
 
 
 def prepare(request: RunRequest) -> PreparedRun:
@@ -108,10 +109,10 @@ def prepare(request: RunRequest) -> PreparedRun:
     if isinstance(task, DevicePlaced):
         task.to_device(placement.torch_device)
     dataset_config = task.dataset_config
-    needs_fit = True
+    needs_fit, base = True, None
     if isinstance(dataset_config, Mapping):  # sizes that cannot work are refused before collecting anything
         check_dataset_config(dataset_config)
-        needs_fit = _check_views(encoder_entry, config["encoder"], request.seed, dataset_config)
+        needs_fit, base = _check_encoder(encoder_entry, config["encoder"], request.seed, dataset_config)
         length = dataset_config.get("episode_length")
         if isinstance(length, int) and spec.lookback > length:
             raise SpecError(f"encoder {spec.name!r} has a lookback of {spec.lookback} frames ({spec.frames} at "
@@ -119,7 +120,7 @@ def prepare(request: RunRequest) -> PreparedRun:
                             f"encoder with lookback <= {length} or set task.dataset.episode_length >= "
                             f"{spec.lookback}")
     return PreparedRun(request, preset, config, encoder_entry, task, identity.run_code(encoder_class, task),
-                       needs_fit, placement)
+                       needs_fit, placement, base)
 
 
 def prepare_dataset(prepared: PreparedRun, home: BenchHome, show_progress: bool = True) -> MultiViewDataset:
@@ -145,10 +146,10 @@ def _progress_bar(name: str, enabled: bool):
 
 
 def encoder_workdir(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
-                    base_identity: Mapping[str, Any] | None = None, placement: Placement | None = None) -> Path:
+                    placement: Placement | None = None) -> Path:
     """The folder of the encoder this run fits or reuses (`encoder_key_of`; for a frozen base the key also
     holds the base's identity, its weights' checksum)."""
-    key = encoder_key_of(prepared, dataset.fingerprint, base_identity, placement)
+    key = encoder_key_of(prepared, dataset.fingerprint, placement)
     return home.encoders / f"{prepared.config['encoder']['name']}-{key}"
 
 
@@ -182,20 +183,22 @@ def construct_encoder(entry: registry.Entry, encoder_config: Mapping[str, Any], 
     return encoder
 
 
-def _check_views(entry: registry.Entry, encoder_config: Mapping[str, Any], seed: int,
-                 dataset_config: Mapping[str, Any]) -> bool:
+def _check_encoder(entry: registry.Entry, encoder_config: Mapping[str, Any], seed: int,
+                   dataset_config: Mapping[str, Any]) -> tuple[bool, dict[str, Any] | None]:
     """Refuse, before any data is collected, an encoder that trains on more camera views than the task's
-    dataset has (constructing it also refuses a model table it cannot build); returns its `needs_fit`."""
+    dataset has (constructing it also refuses a model table it cannot build, or weights it cannot load);
+    returns its `needs_fit` and its frozen base's identity (None: it has none)."""
     cameras = list(dataset_config.get("cameras", ()))
     shape = (dataset_config.get("height"), dataset_config.get("width"))
     if not all(isinstance(x, int) for x in shape):
-        return True
+        return True, None
     encoder = construct_encoder(entry, encoder_config, seed, shape)
+    base = frozen_base_of(encoder)
     if isinstance(encoder, MultiViewTrainer) and encoder.training_views > len(cameras):
         raise SpecError(f"encoder {entry.name!r} trains on {encoder.training_views} camera views of each "
                         f"moment; the task's dataset has {len(cameras)} ({', '.join(cameras) or 'none'}): give "
                         f"task.dataset.cameras at least {encoder.training_views} cameras")
-    return bool(encoder.needs_fit)
+    return bool(encoder.needs_fit), None if base is None else base.identity()
 
 
 def place_encoder(encoder: Encoder, placement: Placement) -> Placement:
@@ -217,6 +220,9 @@ def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchH
     placement = place_encoder(encoder, prepared.placement)
     placed = {"device": placement.device}
     base = frozen_base_of(encoder)
+    if prepared.base is not None and (base is None or base.identity() != prepared.base):  # the id holds it
+        raise BenchError(f"encoder {spec.name!r}: its base's weights changed on disk since the run was "
+                         f"prepared; run it again")
 
     def attach() -> dict[str, Any] | None:
         return attach_feature_cache(encoder, dataset, home, show_progress, placement)
@@ -225,7 +231,7 @@ def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchH
         cache = attach()
         return encoder, {"fitted": False, "reused": False, **placed,
                          **({} if cache is None else {"feature_cache": cache})}
-    workdir = encoder_workdir(prepared, dataset, home, None if base is None else base.identity(), placement)
+    workdir = encoder_workdir(prepared, dataset, home, placement)
     with exclusive_lock(home.encoders / f".{workdir.name}.lock"):  # concurrent runs fit it once
         # A stored checkpoint is loaded (and refused if it cannot be) before the cache is built.
         fit = _fit_or_load(encoder, spec, dataset, workdir, prepared.request.force, show_progress,
