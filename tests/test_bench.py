@@ -77,10 +77,18 @@ def test_probe_dataset_subset_links_the_chunks_of_the_first_episodes(tmp_path):
     assert np.all(episode.frames[0, 1] == episode.frames[0, 1, 0, 0])  # constant within a frame
 
 
-def test_probe_embedding_phase_runs_the_task_as_a_run_does(tmp_path):
+def test_probe_embedding_phase_runs_the_task_as_a_run_does(tmp_path, monkeypatch):
     """`measure_embedding` wraps the task's own feature extraction: a change to `CartpoleProbe` that the
-    benchmark no longer matches fails here, not only in `mftcn-bench bench`."""
+    benchmark no longer matches fails here, not only in `mftcn-bench bench`. Like a run, mftcn4 embeds
+    from its feature cache: it never runs the base on the probe's frames."""
     import torch
+
+    from mftcn_bench.encoders import mftcn
+
+    def no_base_pass(*args, **kwargs):
+        raise AssertionError("the probe ran the base on frames its feature cache holds")
+
+    monkeypatch.setattr(mftcn, "base_features", no_base_pass)
 
     threads = torch.get_num_threads()  # measure_embedding pins one thread, as in its child process
     root = bench_probe.write_dataset(tmp_path / "datasets", 2, 1, 30, 32)
@@ -90,6 +98,7 @@ def test_probe_embedding_phase_runs_the_task_as_a_run_does(tmp_path):
         torch.set_num_threads(threads)
     assert memory.frames == 90
     assert memory.feature_bytes > 0 and memory.embed_peak > 0 and memory.fit_peak > 0
+    assert len(list((root.parent / f"{root.name}-home" / "features").glob("*/manifest.json"))) == 1
 
 
 def test_bench_command_prints_and_writes_the_table(tmp_path, capsys):

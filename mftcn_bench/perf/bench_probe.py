@@ -5,7 +5,8 @@ fits an MLP on all the features; at 160x160 the raw frames are ~27 GB, so the pi
 episodes. Its two phases are measured separately, each in a fresh process, by the peak RSS (`VmHWM` of
 /proc/self/status, reset between phases through /proc/self/clear_refs):
 
-- Embedding (`measure_embedding`): `CartpoleProbe.evaluate` exactly as a run calls it, on a synthetic
+- Embedding (`measure_embedding`): `CartpoleProbe.evaluate` exactly as a run calls it (mftcn4 reading
+  its frozen base's feature cache, which is built first in the same process), on a synthetic
   dataset written with the real chunk writer (frames constant within each frame, so chunks are small and
   fast to write; the network's cost and the arrays' sizes do not depend on pixel values) of a few
   full-size episodes. Embedding all 180,000 frames at 160x160 takes over an hour on one core, and
@@ -140,11 +141,15 @@ def _run_phases(task, encoder, dataset) -> ProbeMemory:
 
 def measure_embedding(root: Path, encoder_name: str = "mftcn4") -> ProbeMemory:
     """Run `cartpole-probe` (paper preset at the dataset's image size, an untrained `encoder_name`) on the
-    dataset at `root` in this process; the peak RSS of the embedding phase and of the fit phase."""
+    dataset at `root` in this process; the peak RSS of the embedding phase and of the fit phase. As in a
+    run, an encoder on a frozen base first gets its feature cache (built here, beside the dataset, so the
+    build's peak counts in the embedding phase) and embeds from it."""
     import torch
 
+    from mftcn_bench.core.home import BenchHome
     from mftcn_bench.core.specs import encoder_spec_from_config
     from mftcn_bench.data.dataset import MultiViewDataset
+    from mftcn_bench.run.runner import attach_feature_cache
 
     torch.set_num_threads(1)
     dataset = MultiViewDataset(root)
@@ -152,6 +157,7 @@ def measure_embedding(root: Path, encoder_name: str = "mftcn4") -> ProbeMemory:
     prepared = _probe_task(encoder_name, height, width)
     spec = encoder_spec_from_config(prepared.encoder_entry.description, prepared.config["encoder"])
     encoder = prepared.encoder_entry.load()(spec, image_shape=(height, width), seed=0)
+    attach_feature_cache(encoder, dataset, BenchHome.resolve(root.parent / f"{root.name}-home"), show_progress=False)
     return _run_phases(prepared.task, encoder, dataset)
 
 
