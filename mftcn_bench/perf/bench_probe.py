@@ -147,16 +147,14 @@ def measure_embedding(root: Path, encoder_name: str = "mftcn4") -> ProbeMemory:
     import torch
 
     from mftcn_bench.core.home import BenchHome
-    from mftcn_bench.core.specs import encoder_spec_from_config
     from mftcn_bench.data.dataset import MultiViewDataset
-    from mftcn_bench.run.runner import attach_feature_cache
+    from mftcn_bench.run.runner import attach_feature_cache, construct_encoder
 
     torch.set_num_threads(1)
     dataset = MultiViewDataset(root)
     height, width = dataset.image_shape
     prepared = _probe_task(encoder_name, height, width)
-    spec = encoder_spec_from_config(prepared.encoder_entry.description, prepared.config["encoder"])
-    encoder = prepared.encoder_entry.load()(spec, image_shape=(height, width), seed=0)
+    encoder = construct_encoder(prepared.encoder_entry, prepared.config["encoder"], 0, (height, width))
     attach_feature_cache(encoder, dataset, BenchHome.resolve(root.parent / f"{root.name}-home"), show_progress=False)
     return _run_phases(prepared.task, encoder, dataset)
 
