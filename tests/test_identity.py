@@ -27,7 +27,7 @@ def test_a_plugins_source_and_version_key_its_runs(tmp_path, monkeypatch):
     plugin = install(monkeypatch, tmp_path, "idplug_a", "1.0", {"enc": ENCODER}, {"plug-state": "enc:PlugEncoder"})
     first = _ids("plug-state")
     assert _ids("plug-state") == first, "the same code and config give the same ids"
-    plugin.edit("enc", ENCODER + "    # a changed line\n")
+    plugin.edit("enc", ENCODER + "    needs_fit = False\n")
     edited = _ids("plug-state")
     assert edited[0] != first[0] and edited[1] != first[1]
     plugin.set_version("1.1")
@@ -69,6 +69,46 @@ def test_dataset_ids_follow_the_collectors_code(tmp_path, monkeypatch):
     assert collector_id() == first
     plugin.edit("pixels", "VALUE = 2\n")
     assert collector_id() != first
+
+
+def test_dataset_ids_follow_the_code_not_its_layout(tmp_path, monkeypatch):
+    """A comment, a docstring and a blank line added to a collector's module leave its datasets' id as it
+    was; a changed constant re-keys them."""
+    code = "SCALE = 1\n\n\ndef collect(config, index):\n    return SCALE * index\n"
+    plugin = install(monkeypatch, tmp_path, "idplug_d", "1.0", {"collect": code}, {})
+    from mftcn_bench.data.dataset import dataset_id
+
+    def collector_id() -> str:
+        import importlib
+
+        return dataset_id({"name": "x", "seed": 0}, importlib.import_module("idplug_d.collect").collect)
+
+    first = collector_id()
+    laid_out = ('"""Collects x."""\n\n# the scale of every frame\nSCALE = 1  # why: none\n\n\n\n'
+                'def collect(config, index):\n    """One frame."""\n\n    return SCALE * index\n')
+    plugin.edit("collect", laid_out)
+    assert collector_id() == first, "comments, docstrings and blank lines are not the code's meaning"
+    plugin.edit("collect", laid_out.replace("SCALE = 1", "SCALE = 2"))
+    assert collector_id() != first
+    plugin.edit("collect", laid_out.replace("return SCALE * index", "return SCALE + index"))
+    assert collector_id() != first
+
+
+def test_the_normal_form_drops_only_docstrings(tmp_path):
+    """Only the first string statement of a module, class or function body is a docstring: a string
+    value, or a string statement after the first, is code."""
+    module = tmp_path / "m.py"
+
+    def form(text: str) -> bytes:
+        module.write_text(text)
+        return identity.normal_form(module)
+
+    plain = form('X = "a"\n\n\nclass C:\n    def f(self):\n        return 1\n')
+    assert form('"""M."""\nX = "a"  # a\n\n\nclass C:\n    """C."""\n\n    def f(self):\n'
+                '        """f."""\n        return 1\n') == plain
+    assert form('X = "b"\n\n\nclass C:\n    def f(self):\n        return 1\n') != plain
+    assert form('X = "a"\n"""a statement after the first"""\n\n\nclass C:\n    def f(self):\n'
+                '        return 1\n') != plain
 
 
 def test_a_base_weights_file_replaced_at_the_same_path_keys_new_runs(tmp_path):

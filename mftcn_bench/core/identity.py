@@ -2,11 +2,13 @@
 
 An identity is a content hash of what produced the artifact: its inputs (resolved configs, seeds, the
 fingerprints of the artifacts it was made from), the versions of the libraries that compute it, and its
-code. Code is identified per component by `code_identity`: the source of every module of the component's
+code. Code is identified per component by `code_identity`: the normal form of every module of the component's
 import closure (followed through `import` statements of the harness and of the component's own top-level
-package), plus, for a plugin, its distribution's name and version. So editing a collector re-keys its
-datasets, editing `rl/ppo.py` re-keys every control run, and bumping a plugin's version or editing its
-source re-keys that plugin's runs, while editing the report code re-keys nothing.
+package), plus, for a plugin, its distribution's name and version. The normal form is the module's syntax
+tree without docstrings, comments, blank lines or positions (`normal_form`): what the code does, not how
+its text is laid out. So editing a collector's code re-keys its datasets, editing `rl/ppo.py` re-keys every
+control run, and bumping a plugin's version or editing its code re-keys that plugin's runs, while fixing a
+comment or a docstring, or editing the report code, re-keys nothing.
 
 Imports through strings (`importlib.import_module("x")`, entry points) are not followed; the runner adds
 the encoder's and the task's classes explicitly.
@@ -39,7 +41,7 @@ class CodeIdentity:
     module: str                    # the component's module (`mftcn_bench.encoders.mftcn`, `my_plugin.enc`)
     distribution: str | None       # the installed distribution that ships it (`mftcn-bench`, `my-plugin`)
     version: str | None            # that distribution's version
-    source: str                    # sha256 (16 hex) of the closure's module names and source bytes
+    source: str                    # sha256 (16 hex) of the closure's module names and normal forms
     editable: bool = False         # installed in editable / development mode (its source can change in place)
 
     @property
@@ -79,9 +81,47 @@ def _module_file(module: str) -> Path | None:
     return None
 
 
+@functools.lru_cache(maxsize=1024)
+def _parse(source: bytes) -> ast.Module:
+    """A module's syntax tree, keyed by its bytes (an edited file is parsed anew); never modified."""
+    return ast.parse(source)
+
+
+def _tree(path: Path) -> ast.Module:
+    return _parse(path.read_bytes())
+
+
+_DOCUMENTED = (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)
+
+
+def normal_form(path: Path) -> bytes:
+    """What a module's code does, without its layout: its syntax tree written out with every docstring
+    dropped and no line or column numbers (comments and blank lines never reach the tree)."""
+    return _written(_tree(path)).encode()
+
+
+def _has_docstring(node: ast.AST) -> bool:
+    if not isinstance(node, _DOCUMENTED) or not node.body:
+        return False
+    first = node.body[0]
+    return isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str)
+
+
+def _written(node: object) -> str:
+    """`ast.dump` without positions, skipping docstrings (the cached tree is read, never changed)."""
+    if isinstance(node, ast.AST):
+        fields = {name: getattr(node, name, None) for name in node._fields}
+        if _has_docstring(node):
+            fields["body"] = fields["body"][1:]
+        return f"{type(node).__name__}({', '.join(f'{k}={_written(v)}' for k, v in fields.items())})"
+    if isinstance(node, list):
+        return f"[{', '.join(_written(item) for item in node)}]"
+    return repr(node)
+
+
 def _imports(module: str, path: Path) -> set[str]:
     """Absolute names of every module `path` imports anywhere (also inside functions)."""
-    tree = ast.parse(path.read_bytes(), filename=str(path))
+    tree = _tree(path)
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     found: set[str] = set()
     for node in ast.walk(tree):
@@ -118,12 +158,12 @@ def _closure(roots: tuple[str, ...], tracked: frozenset[str]) -> tuple[tuple[str
 
 
 def source_digest(modules: Iterable[str]) -> str:
-    """sha256 (16 hex) of the import closure of `modules`: every module's name and source bytes."""
+    """sha256 (16 hex) of the import closure of `modules`: every module's name and normal form."""
     roots = tuple(sorted(set(modules)))
     tracked = frozenset({HARNESS, *(m.split(".")[0] for m in roots)})
     digest = hashlib.sha256()
     for module, path in _closure(roots, tracked):
-        digest.update(module.encode() + b"\0" + hashlib.sha256(path.read_bytes()).digest())
+        digest.update(module.encode() + b"\0" + hashlib.sha256(normal_form(path)).digest())
     return digest.hexdigest()[:16]
 
 
