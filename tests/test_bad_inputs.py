@@ -266,6 +266,17 @@ SPEC_CASES = {
                        ["task.probe.epochs must be >= 1, got 0"]),
     "probe validation fraction out of range": (["run", *TINY_TASK, "--set", "task.probe.validation_fraction=2.0"],
                                                ["validation_fraction must be in [0, 1)", "got 2.0"]),
+    "probe episodes that dm_control would splice": (
+        ["run", *TINY_TASK, "--set", "task.dataset.action_repeat=2", "--set", "task.dataset.episode_length=600"],
+        ["[dataset]: episode_length x action_repeat = 600 x 2 = 1200 control steps per episode",
+         "cartpole-swingup episodes end after 1000", "use at most 1000"]),
+    "swing-up data that dm_control would splice": (
+        ["run", "--task", "swingup", "--preset", "smoke", "--set", "task.dataset.action_repeat=2",
+         "--set", "task.dataset.episode_length=1000"],
+        ["task 'swingup': [dataset]: episode_length x action_repeat = 1000 x 2 = 2000 control steps"]),
+    "a data set's frame rate the agent step does not divide": (
+        ["run", "--task", "swingup", "--preset", "smoke", "--set", "task.dataset.action_repeat=3"],
+        ["[env] action_repeat (8) must be a multiple of the data set's action_repeat (3)"]),
     "probe-state readout without the difference": (
         ["run", "--task", "swingup-probe-state", "--preset", "smoke", "--set", "task.env.embedding_difference=false"],
         ["the probe reads [e_t, e_t - e_t-1]; set [env] embedding_difference = true"]),

@@ -62,6 +62,33 @@ def test_lite0_features_equal_the_reference_implementation():
     assert torch.allclose(ours, x, atol=1e-5)
 
 
+@pytest.mark.parametrize("shape", [(48, 96), (160, 160)])
+def test_the_onnxruntime_engine_gives_the_eager_features_within_1e_4(shape):
+    """The fast path of the frozen base (ONNX Runtime) against eager PyTorch at both task sizes, at the batch
+    sizes a rollout and a cache build use (one session per input size, any batch size)."""
+    eager = build_base(BaseConfig(name="efficientnet-lite0", layer=10))
+    fast = build_base(BaseConfig(name="efficientnet-lite0", layer=10, engine="onnxruntime"))
+    rng = np.random.default_rng(1)
+    for batch in (1, 8, 5):
+        images = torch.from_numpy(rng.integers(0, 256, (batch, 3, *shape), dtype=np.uint8))
+        expected, got = eager(images), fast(images)
+        assert got.shape == expected.shape and got.dtype == torch.float32
+        assert float((got - expected).abs().max()) < 1e-4
+    assert len(fast._onnxruntime._sessions) == 1, "one exported graph per input size, the batch size free"
+    assert fast.identity() != eager.identity(), "the engine is part of the base's identity"
+
+
+def test_an_onnxruntime_base_survives_a_copy():
+    """A copy (a sweep's worker, a deep copy) rebuilds its sessions instead of carrying them."""
+    import copy
+
+    fast = build_base(BaseConfig(**LITE0, engine="onnxruntime"))
+    images = torch.from_numpy(np.random.default_rng(2).integers(0, 256, (2, 3, 16, 24), dtype=np.uint8))
+    first = fast(images)
+    clone = copy.deepcopy(fast)
+    assert clone._onnxruntime._sessions == {} and torch.equal(clone(images), first)
+
+
 def test_a_frozen_base_stays_frozen_and_names_its_weights():
     base = build_base(BaseConfig(**LITE0))
     assert isinstance(base, FrozenBase) and base.out_channels == 40
@@ -80,6 +107,8 @@ def test_base_config_errors_are_one_line():
         BaseConfig(name="resnet")
     with pytest.raises(SpecError, match="layer must be a block of efficientnet-lite0, 0-15"):
         BaseConfig(layer=16)
+    with pytest.raises(SpecError, match="engine must be one of torch, onnxruntime; got 'tensorrt'"):
+        BaseConfig(engine="tensorrt")
     with pytest.raises(SpecError, match="bad \\[model.base\\] table: unknown key"):
         mftcn(base={"name": "efficientnet-lite0", "cut": 3})
 

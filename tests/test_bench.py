@@ -118,15 +118,18 @@ def test_bench_command_refuses_an_unknown_figure(capsys):
 def test_image_sized_offscreen_buffer_renders_the_same_pixels():
     """The renderer's speed-up (an offscreen buffer of the image's size, not the suite's 640x480) must not
     change a pixel: datasets keep their checksums."""
-    from mftcn_bench.sim.rendering import MultiViewRenderer, ensure_gl
+    from mftcn_bench.sim.rendering import MultiViewRenderer, RenderSettings, ensure_gl
 
     ensure_gl()
     from dm_control import suite
     from dm_control.mujoco.engine import Camera
 
     ours, plain = (suite.load("cartpole", "swingup", task_kwargs={"random": 3}) for _ in range(2))
-    renderer = MultiViewRenderer(ours.physics, ["fixed", "lookatcart"], 48, 96, 16, 0)
+    settings = RenderSettings(shadowsize=16, offsamples=0, shadows=False, reflection=False)
+    renderer = MultiViewRenderer(ours.physics, ["fixed", "lookatcart"], 48, 96, settings)
     plain.physics.model.vis.quality.shadowsize, plain.physics.model.vis.quality.offsamples = 16, 0
+    plain.physics.model.light_castshadow[:] = 0
+    plain.physics.model.mat_reflectance[:] = 0
     assert (plain.physics.model.vis.global_.offwidth, plain.physics.model.vis.global_.offheight) == (640, 480)
     cameras = [Camera(plain.physics, 48, 96, camera_id=c) for c in ("fixed", "lookatcart")]
     ours.reset()

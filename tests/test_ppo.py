@@ -6,8 +6,11 @@ import torch
 from mftcn_bench.rl.expert import ExpertPolicy, ensure_expert, state_env_factory
 from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
 from mftcn_bench.rl.suite_env import SuiteConfig
+from mftcn_bench.sim.rendering import RenderSettings
 
-ENV = SuiteConfig("cartpole", "swingup", "fixed", 24, 32, episode_length=40, action_repeat=4)
+RENDER = RenderSettings(shadowsize=16, offsamples=0, shadows=False, reflection=False)
+ENV = SuiteConfig("cartpole", "swingup", "fixed", 24, 32, episode_length=40, action_repeat=4, render=RENDER,
+                     frame_every=1)
 PPO = PPOConfig(frames=480, num_envs=2, episodes_per_batch=1, epochs=2, minibatch_size=8, lr=3e-4, anneal_lr=True,
                 gamma=0.99, lmbda=0.95, clip_epsilon=0.2, clip_value=0.2, entropy_coeff=0.01, critic_coeff=0.5,
                 max_grad_norm=0.5, reward_scale=0.1, hidden=[16, 16], eval_episodes=3, checkpoint_every=1)
@@ -213,7 +216,8 @@ def test_ppo_raises_the_return_of_a_small_task(tmp_path):
     the first ones (seed 0 gives 101, 91 -> 120, 117, 119); with lr 0 nothing is learnt."""
     from dataclasses import replace
 
-    env = SuiteConfig("cartpole", "balance", "fixed", 24, 32, episode_length=200, action_repeat=4)
+    env = SuiteConfig("cartpole", "balance", "fixed", 24, 32, episode_length=200, action_repeat=4, render=RENDER,
+                     frame_every=1)
     config = replace(PPO, frames=16000, num_envs=8, epochs=4, minibatch_size=64, lr=3e-3, gamma=0.97,
                      entropy_coeff=0.0, hidden=[32, 32], checkpoint_every=100)
 

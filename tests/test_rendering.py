@@ -1,12 +1,13 @@
 import numpy as np
 import pytest
 
-from mftcn_bench.core.errors import DataError, SystemRequirementError
+from mftcn_bench.core.errors import DataError, SpecError, SystemRequirementError
 from mftcn_bench.data.cartpole import collect_episode
 from mftcn_bench.sim import rendering
 
 CONFIG = {"seed": 3, "cameras": ["fixed", "lookatcart"], "height": 24, "width": 32, "episode_length": 12,
-          "action_keep_prob": 0.5, "action_repeat": 1, "render": {"shadowsize": 16, "offsamples": 0},
+          "action_keep_prob": 0.5, "action_repeat": 1, "name": "t",
+          "render": {"shadowsize": 16, "offsamples": 0, "shadows": False, "reflection": False},
           "init": {"x_range": 1.0, "x_dot_std": 0.5, "theta_dot_std": 1.0}}
 
 
@@ -33,3 +34,19 @@ def test_missing_gl_library_is_one_line_with_the_install_command(monkeypatch):
     with pytest.raises(SystemRequirementError, match="apt-get install -y libegl1") as info:
         rendering.ensure_gl()
     assert "\n" not in str(info.value)
+
+
+def test_render_settings_turn_the_extra_passes_off_and_keep_the_scene():
+    """Shadows and the floor's reflection off change the image (the settings reach the model) while the
+    cameras, geometry and sky stay: the same pose renders close to the full-quality frame."""
+    lean = collect_episode(CONFIG, 0)["frames"]
+    full = collect_episode({**CONFIG, "render": {**CONFIG["render"], "shadows": True, "reflection": True}}, 0)["frames"]
+    assert not np.array_equal(lean, full)
+    difference = np.abs(lean.astype(np.int16) - full.astype(np.int16))
+    assert difference.mean() < 8, "the same scene, without shadows and mirror images"
+
+
+def test_render_settings_refuse_unknown_keys_in_one_line():
+    with pytest.raises(SpecError, match=r"dataset .d.: bad \[render\] table: unknown key\(s\) \[.shadow.\]"):
+        rendering.RenderSettings.from_table("dataset 'd'", {"shadowsize": 16, "offsamples": 0, "shadow": False,
+                                                            "reflection": False})

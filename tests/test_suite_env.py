@@ -2,13 +2,18 @@
 episodes, reproducible initial states, and rendering only the frames a clip can reach."""
 
 import numpy as np
+import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
+from mftcn_bench.core.errors import SpecError
 from mftcn_bench.rl.observers import StateObserver
 from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig
+from mftcn_bench.sim.rendering import RenderSettings
 
-CONFIG = SuiteConfig("cartpole", "swingup", "fixed", 24, 32, episode_length=40, action_repeat=4)
+RENDER = RenderSettings(shadowsize=16, offsamples=0, shadows=False, reflection=False)
+CONFIG = SuiteConfig("cartpole", "swingup", "fixed", 24, 32, episode_length=40, action_repeat=4, render=RENDER,
+                     frame_every=1)
 
 
 class CountingObserver:
@@ -18,10 +23,12 @@ class CountingObserver:
         self.pushes = []
 
     def observe(self, frames, episode_start, state):
-        self.pushes.append((None if frames is None else frames.shape, bool(episode_start.all()), "observe"))
+        self.pushes.append((None if frames is None else frames.shape, bool(episode_start.all()), "observe",
+                            np.array(state)))
 
     def push(self, frames, episode_start, state):
-        self.pushes.append((None if frames is None else frames.shape, bool(episode_start.all()), "push"))
+        self.pushes.append((None if frames is None else frames.shape, bool(episode_start.all()), "push",
+                            np.array(state)))
         return state.astype(np.float32)
 
 
@@ -110,6 +117,68 @@ def test_embedding_difference_is_the_change_since_the_previous_simulator_frame()
     env.step(td)
     # lookback 1 renders the last two frames of the repeat, and embeds both
     assert [p[2] for p in counting.pushes] == ["push", "push", "push"]
+
+
+def test_the_stream_has_the_data_sets_frame_rate():
+    """With frame_every = action_repeat (an agent-rate data set) the encoder sees one frame per agent step,
+    the frame after the repeat; with frame_every 2 of 4, the last frames of each step two physics steps apart.
+    Either way a clip's frames are exactly as far apart as in its training data."""
+    from dataclasses import replace
+
+    from dm_control import suite
+
+    def cart_positions(every: int, lookback: int) -> tuple[list[float], list[str]]:
+        observer = CountingObserver()
+        env = SuiteBatchEnv(replace(CONFIG, frame_every=every), 1, seed=0, observer=observer, embedding_dim=4,
+                            observer_uses_pixels=True, lookback=lookback)
+        td = env.reset()
+        start = env._envs[0].physics.get_state().copy()
+        for _ in range(2):
+            td.set("action", torch.full((1, 1), 0.5))
+            td = env.step(td)["next"]
+        return [float(p[3][0, 0]) for p in observer.pushes], [p[2] for p in observer.pushes], start
+
+    def replay(start, steps: list[int]) -> list[float]:
+        plain = suite.load("cartpole", "swingup")
+        plain.reset()
+        with plain.physics.reset_context():
+            plain.physics.set_state(start)
+        seen, done = [], 0
+        for step in steps:
+            for _ in range(step - done):
+                plain.step(np.array([0.5]))
+            done = step
+            seen.append(float(plain.physics.data.qpos[0]))
+        return seen
+
+    agent, how, start = cart_positions(every=4, lookback=3)
+    assert how == ["push", "push", "push"], "one frame per agent step, each embedded"
+    assert np.allclose(agent, replay(start, [0, 4, 8]), atol=1e-9)
+    half, how, start = cart_positions(every=2, lookback=3)
+    assert how == ["push", "observe", "push", "observe", "push"], "two frames an agent step, both within reach"
+    assert np.allclose(half, replay(start, [0, 2, 4, 6, 8]), atol=1e-9)
+    with pytest.raises(SpecError,
+                       match=r"action_repeat \(4\) must be a multiple of the data set's action_repeat \(3\)"):
+        replace(CONFIG, frame_every=3)
+
+
+def test_the_difference_on_an_agent_rate_stream_is_the_change_since_the_last_agent_step():
+    from dataclasses import replace
+
+    from mftcn_bench.encoders.baselines import state_embedding
+
+    config = replace(CONFIG, embedding_difference=True, frame_every=CONFIG.action_repeat)
+    env = SuiteBatchEnv(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
+    td = env.reset()
+    previous = td.get("observation").numpy()[:, :5]
+    for _ in range(3):
+        td.set("action", torch.full((2, 1), 0.7))
+        td = env.step(td)["next"]
+        obs = td.get("observation").numpy()
+        now = np.stack([np.concatenate([e.physics.data.qpos, e.physics.data.qvel]) for e in env._envs])
+        assert np.allclose(obs[:, :5], state_embedding(now), atol=1e-5)
+        assert np.allclose(obs[:, 5:], obs[:, :5] - previous, atol=1e-5)
+        previous = obs[:, :5]
 
 
 class SumReadout:

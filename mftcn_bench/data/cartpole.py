@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from mftcn_bench.sim.rendering import MultiViewRenderer, ensure_gl
+from mftcn_bench.sim.rendering import MultiViewRenderer, RenderSettings, ensure_gl
 
 
 def camera_names() -> list[str]:
@@ -36,9 +36,8 @@ def collect_episode(config: Mapping[str, Any], index: int) -> dict[str, np.ndarr
     rng = np.random.default_rng([int(config["seed"]), index])
     env = suite.load("cartpole", "swingup", task_kwargs={"random": int(rng.integers(2**31))})
     physics = env.physics
-    render = config["render"]
     renderer = MultiViewRenderer(physics, config["cameras"], int(config["height"]), int(config["width"]),
-                                 int(render["shadowsize"]), int(render["offsamples"]))
+                                 RenderSettings.from_table(f"dataset {config['name']!r}", config["render"]))
     init = config["init"]
     env.reset()
     with physics.reset_context():

@@ -22,7 +22,7 @@ import numpy as np
 from mftcn_bench.core.errors import DataError
 from mftcn_bench.data.pouring_labels import STATE_COLUMNS, labels_from_state
 from mftcn_bench.data.pouring_scene import CAMERAS, bead_radii, scene_xml
-from mftcn_bench.sim.rendering import MultiViewRenderer, ensure_gl
+from mftcn_bench.sim.rendering import MultiViewRenderer, RenderSettings, ensure_gl
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -95,8 +95,8 @@ class PouringEpisode:
         self._ids()
         self._randomise()
         self.renderer = MultiViewRenderer(self.physics, config["cameras"], int(config["height"]),
-                                          int(config["width"]), int(config["render"]["shadowsize"]),
-                                          int(config["render"]["offsamples"]))
+                                          int(config["width"]),
+                                          RenderSettings.from_table(f"dataset {config['name']!r}", config["render"]))
 
     # --- scene set-up -------------------------------------------------------------------------------------
     def _ids(self) -> None:

@@ -15,6 +15,7 @@ with OMP/MKL/OpenBLAS at 1 thread), so a ratio is not an artefact of thread coun
 | PPO collection frames/s on true state | torchrl SerialEnv of 8 DMControlEnv | >= 2x |
 | encoder training clips/s, mfTCN5 | each clip through the network on its own | report |
 | feature-cache build frames/s (EfficientNet-Lite0 to block 10) | the raw base forward on the same frames | >= 0.8x |
+| the frozen base's forward frames/s on the specs' engine (96x48, 160x160) | eager PyTorch | report |
 | head training steps/s on the cache, mfTCN5 | end-to-end small-cnn mfTCN5 steps/s | report |
 | clip embedding where clips share frames | each clip on its own; clips batched but not sharing | >= 1.5x |
 | dataset read frames/s | the trainer's consumption of frames | >= 2x |
@@ -175,7 +176,7 @@ def bench_render(sizes: Sizes, task: str = "swingup") -> BenchRow:
     h, w, camera = env_config.height, env_config.width, env_config.camera
     ours = suite.load(env_config.domain, env_config.task, task_kwargs={"random": 0})
     default = suite.load(env_config.domain, env_config.task, task_kwargs={"random": 0})
-    renderer = MultiViewRenderer(ours.physics, [camera], h, w, env_config.shadowsize, env_config.offsamples)
+    renderer = MultiViewRenderer(ours.physics, [camera], h, w, env_config.render)
     quality = default.physics.model.vis.quality
     n = sizes.render_frames
 
@@ -191,7 +192,7 @@ def bench_render(sizes: Sizes, task: str = "swingup") -> BenchRow:
     return BenchRow(f"rendering {w}x{h} '{camera}' ({task}), frames/s", rates["ours"], "frames/s",
                     f"dm_control defaults (shadow {quality.shadowsize}, {quality.offsamples}x MSAA)",
                     rates["default"], rates["ours"] / rates["default"], Target(">=", 10),
-                    f"ours: shadow map {env_config.shadowsize}, MSAA {env_config.offsamples}, buffer {w}x{h}")
+                    f"ours: {env_config.render}, buffer {w}x{h}")
 
 
 # -- streaming ------------------------------------------------------------------------------------------
@@ -498,6 +499,40 @@ def bench_feature_cache(sizes: Sizes, workdir: Path) -> BenchRow:
                     Target(">=", 0.8), "decode, forward, write and checksum every frame of every view")
 
 
+ENGINE_BATCH = 32  # frames a rollout step embeds at once: one per environment of swingup's [ppo] num_envs
+
+
+def bench_base_engine(sizes: Sizes) -> list[BenchRow]:
+    """Frames/s of the frozen base (mfTCN5's `[model.base]`, its engine) against the same base in eager
+    PyTorch, at the two swing-up image sizes, a rollout step's batch of frames."""
+    from dataclasses import replace
+
+    import torch
+
+    from mftcn_bench.core.registry import get
+    from mftcn_bench.encoders.bases import BaseConfig, build_base
+
+    _one_thread()
+    config = BaseConfig(**get("encoders", "mftcn5").spec.model["base"])
+    bases = {"engine": build_base(config), "eager": build_base(replace(config, engine="torch"))}
+    rows = []
+    for height, width in ((48, 96), (160, 160)):
+        images = torch.from_numpy(np.random.default_rng(0).integers(0, 256, (ENGINE_BATCH, 3, height, width),
+                                                                    dtype=np.uint8))
+        repeat = max(1, sizes.embed_frames // ENGINE_BATCH)
+
+        def forward(base, images=images, repeat=repeat) -> Callable[[], None]:
+            return lambda: [base(images) for _ in range(repeat)]
+
+        rates = alternate({name: timed(forward(base), repeat * ENGINE_BATCH) for name, base in bases.items()},
+                          sizes.rounds)
+        rows.append(BenchRow(f"frozen base forward, {config.engine} ({width}x{height}, batch {ENGINE_BATCH})",
+                             rates["engine"], "frames/s", "eager PyTorch", rates["eager"],
+                             rates["engine"] / rates["eager"], Target("report"),
+                             f"EfficientNet-Lite0 to block {config.layer}, one thread"))
+    return rows
+
+
 def bench_head_training(sizes: Sizes, workdir: Path) -> BenchRow:
     """Steps/s of mfTCN5's head trained on the feature cache against today's end-to-end small-cnn mfTCN5."""
     from dataclasses import replace
@@ -623,8 +658,8 @@ def bench_probe_rss(sizes: Sizes, workdir: Path) -> BenchRow:
 
 
 # -- the whole suite --------------------------------------------------------------------------------------
-FIGURES = ("render", "streaming", "ppo-pixels", "ppo-state", "training", "feature-cache", "head-training",
-           "embedding", "dataset", "probe-rss", "device")
+FIGURES = ("render", "streaming", "ppo-pixels", "ppo-state", "training", "feature-cache", "base-engine",
+           "head-training", "embedding", "dataset", "probe-rss", "device")
 # Run by default only on a GPU (`--device` resolving to CUDA); on the CPU `--only device` checks the path.
 ON_DEVICE_ONLY = ("device",)
 
@@ -650,6 +685,7 @@ def run_bench(sizes: Sizes, only: Sequence[str] = FIGURES, workdir: Path | None 
             "ppo-state": lambda: bench_ppo_state(sizes),
             "training": lambda: bench_training(sizes, work),
             "feature-cache": lambda: bench_feature_cache(sizes, work),
+            "base-engine": lambda: bench_base_engine(sizes),
             "head-training": lambda: bench_head_training(sizes, work),
             "embedding": lambda: bench_embedding(sizes, work),
             "dataset": lambda: bench_dataset_read(sizes, work),

@@ -16,7 +16,7 @@ import numpy as np
 from mftcn_bench.rl.expert import ExpertPolicy
 from mftcn_bench.rl.ppo import PPOConfig
 from mftcn_bench.rl.suite_env import SuiteConfig, physics_state
-from mftcn_bench.sim.rendering import MultiViewRenderer, ensure_gl
+from mftcn_bench.sim.rendering import MultiViewRenderer, RenderSettings, ensure_gl
 
 
 class StatePolicy(Protocol):
@@ -46,11 +46,11 @@ class ExpertDemoCollector:
         rng = np.random.default_rng([int(config["seed"]), index])
         env = suite.load(config["domain"], self.env_config.task, task_kwargs={"random": int(rng.integers(2**31))})
         physics = env.physics
-        render = config["render"]
         renderer = MultiViewRenderer(physics, config["cameras"], int(config["height"]), int(config["width"]),
-                                     int(render["shadowsize"]), int(render["offsamples"]))
+                                     RenderSettings.from_table(f"dataset {config['name']!r}", config["render"]))
         env.reset()
         length, repeat = int(config["episode_length"]), self.env_config.action_repeat
+        every = int(config["action_repeat"])  # physics steps per frame
         frames = np.empty((len(config["cameras"]), length, int(config["height"]), int(config["width"]), 3),
                           dtype=np.uint8)
         state_dim = physics_state(physics, config["domain"]).shape[0]
@@ -60,8 +60,9 @@ class ExpertDemoCollector:
         for t in range(length):
             frames[:, t] = renderer.render()
             state[t] = physics_state(physics, config["domain"])
-            if t % repeat == 0:
+            if t * every % repeat == 0:  # the expert acts once per agent step, as in its training
                 current = self._expert.act(state[t])
             action[t] = current
-            env.step(current)
+            for _ in range(every):
+                env.step(current)
         return {"frames": frames, "state": state, "action": action}

@@ -8,11 +8,14 @@ together and a reset always resets the whole batch.
 
 Each agent step applies the action for `action_repeat` physics steps and sums the rewards (returns stay
 on the suite's 1000-step scale). The policy's input is an observer's output (`observers.py`): the
-frozen encoder's embedding of the clip ending at the current frame. Frames are rendered only when the
-encoder reads pixels, and then only the physics steps a clip can reach: the last min(lookback,
-action_repeat) of each repeat, so a clip sees consecutive simulator frames exactly as in the encoder's
-training data. With `embedding_difference` the observation is [e_t, e_t - e_{t-1}], e_{t-1} the embedding
-of the simulator frame before (0 difference at an episode's first frame, as the probe's clamping). A
+frozen encoder's embedding of the clip ending at the current frame. The encoder's stream of frames has
+the frame rate of its training data: a frame every `frame_every` physics steps (the data set's
+`action_repeat`: 1 is the simulator's rate, `action_repeat` of the environment is one frame per agent
+step, as pixel-RL code on the suite renders). Frames are rendered only when the encoder reads pixels, and
+then only those a clip can reach: the last min(lookback, frames per agent step) of each agent step, so a
+clip sees frames exactly as far apart as in the encoder's training data. With `embedding_difference` the
+observation is [e_t, e_t - e_{t-1}], e_{t-1} the embedding of the stream's frame before (0 difference at
+an episode's first frame, as the probe's clamping). A
 `Readout` maps that observation once more before the policy sees it (swingup-probe-state: the state a
 fitted probe predicts from it). For an
 encoder trained jointly with the policy (pixels-cnn) the environment emits the raw
@@ -34,7 +37,7 @@ from torchrl.envs import EnvBase
 from mftcn_bench.core.errors import SpecError
 from mftcn_bench.data.clips import ClipRing
 from mftcn_bench.rl.observers import Observer
-from mftcn_bench.sim.rendering import MultiViewRenderer, ensure_gl
+from mftcn_bench.sim.rendering import MultiViewRenderer, RenderSettings, ensure_gl
 
 
 @dataclass(frozen=True)
@@ -47,18 +50,27 @@ class SuiteConfig:
     camera: str
     height: int
     width: int
-    episode_length: int  # physics steps (frames) per episode
+    episode_length: int  # physics steps per episode
     action_repeat: int
-    shadowsize: int = 16
-    offsamples: int = 0
-    # The policy sees [e_t, e_t - e_{t-1}] (the probe's input; e_{t-1}: the embedding of the previous
-    # simulator frame, inside the action repeat) instead of e_t alone.
+    render: RenderSettings
+    frame_every: int     # physics steps between two frames of the encoder's stream (its data set's)
+    # The policy sees [e_t, e_t - e_{t-1}] (the probe's input; e_{t-1}: the embedding of the stream's
+    # frame before) instead of e_t alone.
     embedding_difference: bool = False
 
     def __post_init__(self) -> None:
         if self.action_repeat < 1 or self.episode_length % self.action_repeat:
             raise SpecError(f"[env] episode_length ({self.episode_length}) must be a positive multiple of "
                             f"action_repeat ({self.action_repeat})")
+        if self.frame_every < 1 or self.action_repeat % self.frame_every:
+            raise SpecError(f"[env] action_repeat ({self.action_repeat}) must be a multiple of the data set's "
+                            f"action_repeat ({self.frame_every}): the encoder's frames come that many physics "
+                            f"steps apart")
+
+    @property
+    def frames_per_step(self) -> int:
+        """Frames of the encoder's stream in one agent step."""
+        return self.action_repeat // self.frame_every
 
     @property
     def agent_steps(self) -> int:
@@ -130,7 +142,7 @@ class SuiteBatchEnv(EnvBase):
         self._envs = [suite.load(config.domain, config.task, task_kwargs={"random": seed}) for _ in range(num_envs)]
         self._renders = observer_uses_pixels or pixel_clip is not None
         self._renderers = [MultiViewRenderer(env.physics, [config.camera], config.height, config.width,
-                                             config.shadowsize, config.offsamples)
+                                             config.render)
                            for env in self._envs] if self._renders else []
         if pixel_clip is not None:  # the raw clip of channel-first frames [E, lookback, 3, H, W]
             self._window = ClipRing(pixel_clip.frames, pixel_clip.stride, num_envs)
@@ -142,9 +154,9 @@ class SuiteBatchEnv(EnvBase):
         if readout is not None and pixel_clip is not None:
             raise SpecError("a readout maps an encoder's embedding; an encoder trained with the policy (pixels-cnn) "
                             "gives the policy raw clips")
-        self._embedded_steps = 2 if config.embedding_difference and config.action_repeat > 1 else 1
+        self._embedded_steps = 2 if config.embedding_difference and config.frames_per_step > 1 else 1
         reach = max(lookback, self._embedded_steps)
-        self.render_steps = min(reach, config.action_repeat) if self._renders else 0
+        self.render_steps = min(reach, config.frames_per_step) if self._renders else 0  # frames per agent step
         self._previous: np.ndarray | None = None  # e_{t-1} from inside the action repeat
         self._last: np.ndarray | None = None      # the last agent step's embedding (e_{t-1} at action repeat 1)
         self._t = 0
@@ -214,17 +226,20 @@ class SuiteBatchEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = np.clip(tensordict.get("action").detach().cpu().numpy().astype(np.float64), -1.0, 1.0)
-        repeat = self.config.action_repeat
+        every, frames = self.config.frame_every, self.config.frames_per_step
         reward = np.zeros(self.num_envs, dtype=np.float64)
         obs = None
-        for r in range(repeat):
+        for r in range(self.config.action_repeat):
             for i, env in enumerate(self._envs):
                 reward[i] += step_reward(env, action[i])
-            if r == repeat - 1:
+            if (r + 1) % every:
+                continue  # between two frames of the stream
+            frame = (r + 1) // every  # 1 ... frames
+            if frame == frames:
                 obs = self._observe(start=False)
-            elif r == repeat - 2 and self._embedded_steps == 2:
+            elif frame == frames - 1 and self._embedded_steps == 2:
                 self._remember()
-            elif r >= repeat - self.render_steps:
+            elif frame > frames - self.render_steps:
                 self._observe(start=False, embed=False)
         self._t += 1
         truncated = torch.full((self.num_envs, 1), self._t >= self.config.agent_steps, dtype=torch.bool)

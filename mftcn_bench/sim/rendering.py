@@ -1,19 +1,25 @@
-"""Headless rendering with dm_control: the GL check and a fast multi-camera renderer.
+"""Headless rendering with dm_control: the GL check, the render settings and a fast multi-camera renderer.
 
-The suite's default quality (2048 shadow map, 4x multisampling) costs 15-35 ms a frame on a CPU
-renderer; a tiny shadow map and no multisampling cost a fraction of that with the same cameras and scene.
+The suite's default quality (2048 shadow map, 4x multisampling, shadow-casting lights, a reflective floor)
+costs 15-20 ms a frame on Mesa's llvmpipe at any size. Each shadow-casting light adds two passes of the
+whole scene and a reflective floor one more (MuJoCo's classic renderer); a data set's `[render]` table
+turns them off, which brings a 96x48 frame to about 0.6 ms and a 160x160 one to about 1.2 ms with the same
+cameras, geometry and sky (docs/PERFORMANCE.md has the measured breakdown).
 """
 
 from __future__ import annotations
 
 import ctypes.util
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from functools import cache
+from typing import Any
 
 import numpy as np
 
 from mftcn_bench.core.errors import DataError, SystemRequirementError
+from mftcn_bench.core.specs import parse_table
 
 GL_PACKAGES = {
     "egl": ("EGL", "apt-get install -y libegl1 libgl1 libegl-mesa0 libgles2 libgl1-mesa-dri"),
@@ -97,11 +103,35 @@ def ensure_gl() -> str:
     return backend
 
 
+@dataclass(frozen=True)
+class RenderSettings:
+    """A data set's `[render]` table: how its frames are drawn. Part of the data set's config, so of its id;
+    a control task's rollouts draw with its data set's settings (the encoder sees frames like its data)."""
+
+    shadowsize: int    # shadow map size (when lights cast shadows)
+    offsamples: int    # multisampling of the offscreen buffer
+    shadows: bool      # whether lights cast shadows (two extra passes of the scene per light)
+    reflection: bool   # whether reflective materials (the suite's floor) mirror the scene (one extra pass)
+
+    @classmethod
+    def from_table(cls, owner: str, table: Mapping[str, Any]) -> RenderSettings:
+        return parse_table(cls, owner, "render", table)
+
+    def apply(self, model) -> None:
+        """Set these on a MuJoCo model before its first render (quality is read when the GL context is made)."""
+        model.vis.quality.shadowsize = self.shadowsize
+        model.vis.quality.offsamples = self.offsamples
+        if not self.shadows:
+            model.light_castshadow[:] = 0
+        if not self.reflection:
+            model.mat_reflectance[:] = 0
+
+
 class MultiViewRenderer:
     """Renders the same physics state from several named cameras, reusing one camera object each."""
 
     def __init__(self, physics, cameras: Sequence[str], height: int, width: int,
-                 shadowsize: int, offsamples: int) -> None:
+                 settings: RenderSettings) -> None:
         from dm_control.mujoco.engine import Camera
 
         available = [physics.model.id2name(i, "camera") for i in range(physics.model.ncam)]
@@ -109,9 +139,7 @@ class MultiViewRenderer:
         if unknown:
             raise DataError(f"camera {unknown[0]!r} does not exist in this domain; available: "
                             f"{', '.join(available)}")
-        # Render quality lives in the model and is read when the GL context is first made.
-        physics.model.vis.quality.shadowsize = shadowsize
-        physics.model.vis.quality.offsamples = offsamples
+        settings.apply(physics.model)
         # The offscreen buffer exactly the image size (the suite's is 640x480): the CPU renderer clears and
         # reads the whole buffer each frame, about 1 ms at 96x48; the pixels are identical (tests/test_bench.py).
         physics.model.vis.global_.offwidth, physics.model.vis.global_.offheight = width, height

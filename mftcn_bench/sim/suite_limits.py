@@ -3,7 +3,9 @@ environment silently restarts from a new initial state, so a longer episode woul
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from functools import cache
+from typing import Any
 
 from mftcn_bench.core.errors import SpecError
 
@@ -27,3 +29,16 @@ def check_episode_fits(domain: str, task: str, control_steps: int, what: str) ->
     if control_steps > limit:
         raise SpecError(f"{what}: {control_steps} control steps per episode, but {domain}-{task} episodes end "
                         f"after {limit} (dm_control's time limit); use at most {limit}")
+
+
+def check_dataset_fits(domain: str, task: str, dataset: Mapping[str, Any], what: str) -> None:
+    """Refuse a data set whose episodes (`episode_length` frames, each `action_repeat` control steps apart)
+    outlast the suite's limit; values of the wrong type are left to the data set's own check."""
+    length, repeat = dataset.get("episode_length"), dataset.get("action_repeat", 1)
+    if not isinstance(length, int) or not isinstance(repeat, int):
+        return
+    limit = step_limit(domain, task)
+    if length * repeat > limit:
+        raise SpecError(f"{what}: episode_length x action_repeat = {length} x {repeat} = {length * repeat} control "
+                        f"steps per episode, but {domain}-{task} episodes end after {limit} (dm_control's time "
+                        f"limit; a longer episode would be two spliced together); use at most {limit}")

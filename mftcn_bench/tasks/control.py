@@ -40,7 +40,8 @@ from mftcn_bench.rl.expert import ensure_expert, expert_key
 from mftcn_bench.rl.observers import make_observer
 from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
 from mftcn_bench.rl.suite_env import PixelClip, Readout, SuiteBatchEnv, SuiteConfig
-from mftcn_bench.sim.suite_limits import check_episode_fits
+from mftcn_bench.sim.rendering import RenderSettings
+from mftcn_bench.sim.suite_limits import check_dataset_fits, check_episode_fits
 from mftcn_bench.tasks.base import TaskResult
 from mftcn_bench.tasks.probe import ProbeConfig, ProbeMLP, fit_probe, probe_split
 
@@ -69,14 +70,13 @@ class ControlTask:
         self.config, self.seed = config, seed
         self.device = torch.device("cpu")
         dataset = config["dataset"]
-        seen_as = {"height": dataset["height"], "width": dataset["width"], **dataset["render"]}
+        seen_as = {"height": dataset["height"], "width": dataset["width"], "frame_every": dataset["action_repeat"],
+                   "render": RenderSettings.from_table(f"task {config['name']!r}", dataset["render"])}
         self.env_config = _table(SuiteConfig, config["name"], "env", {**config["env"], **seen_as})
         self.ppo = _table(PPOConfig, config["name"], "ppo", config["ppo"])
         env = self.env_config
         check_episode_fits(env.domain, env.task, env.episode_length, f"task {config['name']!r}: [env] episode_length")
-        if isinstance(dataset.get("episode_length"), int):  # other bad values: check_dataset_config
-            check_episode_fits(env.domain, env.task, dataset["episode_length"],
-                               f"task {config['name']!r}: [dataset] episode_length")
+        check_dataset_fits(env.domain, env.task, dataset, f"task {config['name']!r}: [dataset]")
         if self.env_config.camera not in dataset["cameras"]:
             raise SpecError(f"task {config['name']!r}: [env] camera {self.env_config.camera!r} is not one of the "
                             f"dataset's cameras {', '.join(dataset['cameras'])}")

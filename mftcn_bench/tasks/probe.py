@@ -30,7 +30,7 @@ from mftcn_bench.core.specs import parse_table
 from mftcn_bench.data.cartpole import TARGETS, camera_names, collect_episode, state_targets
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder, embed_episode
-from mftcn_bench.sim.suite_limits import check_episode_fits
+from mftcn_bench.sim.suite_limits import check_dataset_fits
 from mftcn_bench.tasks.base import TaskResult
 
 POSITION, MOTION = TARGETS[:3], TARGETS[3:]
@@ -170,9 +170,7 @@ class CartpoleProbe:
     def __init__(self, config: Mapping[str, Any], seed: int) -> None:
         self.config, self.seed = config, seed
         self.probe = parse_table(ProbeConfig, f"task {config['name']!r}", "probe", config["probe"])
-        if isinstance(config["dataset"].get("episode_length"), int):  # other bad values: check_dataset_config
-            check_episode_fits("cartpole", "swingup", config["dataset"]["episode_length"],
-                               f"task {config['name']!r}: [dataset] episode_length")
+        check_dataset_fits("cartpole", "swingup", config["dataset"], f"task {config['name']!r}: [dataset]")
         available = camera_names()
         unknown = [c for c in config["dataset"]["cameras"] if c not in available]
         if unknown:
