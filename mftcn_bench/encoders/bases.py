@@ -18,11 +18,11 @@ is not 1, resized (bilinear) by that factor; inception-v3 resizes to `input_size
 A frozen base (`trains` false) has a `identity()` that names everything its features depend on, so a
 per-frame feature cache (`feature_cache.py`) can be keyed by it.
 
-`engine` chooses how a frozen base computes on the CPU: `torch` (eager PyTorch) or `onnxruntime` (the same
-network exported to ONNX and run by ONNX Runtime, 4-7x faster here at a rollout's batch sizes, features
-within 1e-4 of eager: docs/PERFORMANCE.md, tests/test_bases.py). The engine is part of the base's identity,
-so of every feature cache, encoder fit and run on it. On a GPU the base runs in PyTorch (the placement
-keys those artifacts apart).
+`engine` chooses how a frozen base computes on the CPU: `onnxruntime` (the default: the network exported to
+ONNX and run by ONNX Runtime, 4-7x faster here at a rollout's batch sizes, features within 1e-4 of eager:
+docs/PERFORMANCE.md, tests/test_bases.py) or `torch` (eager PyTorch; a variant spec file sets
+`[model.base] engine = "torch"`). The engine is part of the base's identity, so of every feature cache,
+encoder fit and run on it. On a GPU the base runs in PyTorch (the placement keys those artifacts apart).
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ class BaseConfig:
     kernels: list[int] = field(default_factory=lambda: [5, 3, 3, 3])
     strides: list[int] = field(default_factory=lambda: [2, 2, 2, 1])
     coords: bool = True
-    engine: str = "torch"  # a frozen base's CPU inference engine: one of ENGINES
+    engine: str = "onnxruntime"  # a frozen base's CPU inference engine, one of ENGINES ("torch": eager)
 
     def __post_init__(self) -> None:
         if self.name not in BASES:

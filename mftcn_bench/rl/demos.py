@@ -50,7 +50,6 @@ class ExpertDemoCollector:
                                      RenderSettings.from_table(f"dataset {config['name']!r}", config["render"]))
         env.reset()
         length, repeat = int(config["episode_length"]), self.env_config.action_repeat
-        every = int(config["action_repeat"])  # physics steps per frame
         frames = np.empty((len(config["cameras"]), length, int(config["height"]), int(config["width"]), 3),
                           dtype=np.uint8)
         state_dim = physics_state(physics, config["domain"]).shape[0]
@@ -60,9 +59,8 @@ class ExpertDemoCollector:
         for t in range(length):
             frames[:, t] = renderer.render()
             state[t] = physics_state(physics, config["domain"])
-            if t * every % repeat == 0:  # the expert acts once per agent step, as in its training
+            if t % repeat == 0:
                 current = self._expert.act(state[t])
             action[t] = current
-            for _ in range(every):
-                env.step(current)
+            env.step(current)
         return {"frames": frames, "state": state, "action": action}

@@ -110,8 +110,9 @@ class RenderSettings:
 
     shadowsize: int    # shadow map size (when lights cast shadows)
     offsamples: int    # multisampling of the offscreen buffer
-    shadows: bool      # whether lights cast shadows (two extra passes of the scene per light)
-    reflection: bool   # whether reflective materials (the suite's floor) mirror the scene (one extra pass)
+    # Left out of a table: as the model says (the suite's lights cast shadows, its floor reflects).
+    shadows: bool = True      # whether lights cast shadows (two extra passes of the scene per light)
+    reflection: bool = True   # whether reflective materials (the suite's floor) mirror the scene (one extra pass)
 
     @classmethod
     def from_table(cls, owner: str, table: Mapping[str, Any]) -> RenderSettings:

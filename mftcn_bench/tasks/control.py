@@ -70,7 +70,7 @@ class ControlTask:
         self.config, self.seed = config, seed
         self.device = torch.device("cpu")
         dataset = config["dataset"]
-        seen_as = {"height": dataset["height"], "width": dataset["width"], "frame_every": dataset["action_repeat"],
+        seen_as = {"height": dataset["height"], "width": dataset["width"], "frame_every": self.data_frame_every(),
                    "render": RenderSettings.from_table(f"task {config['name']!r}", dataset["render"])}
         self.env_config = _table(SuiteConfig, config["name"], "env", {**config["env"], **seen_as})
         self.ppo = _table(PPOConfig, config["name"], "ppo", config["ppo"])
@@ -80,6 +80,11 @@ class ControlTask:
         if self.env_config.camera not in dataset["cameras"]:
             raise SpecError(f"task {config['name']!r}: [env] camera {self.env_config.camera!r} is not one of the "
                             f"dataset's cameras {', '.join(dataset['cameras'])}")
+
+    def data_frame_every(self) -> int:
+        """Physics steps between two frames of the task's data set: its `action_repeat` (the collector steps
+        that many times per frame), so the rollouts' stream has the frame rate the encoder learnt from."""
+        return int(self.config["dataset"]["action_repeat"])
 
     def to_device(self, device: torch.device) -> None:
         """PPO's networks, losses and GAE run on `device` (`core.device.DevicePlaced`); environments and
@@ -208,6 +213,10 @@ class ExpertDemoControlTask(ControlTask):
         self.expert_ppo = _table(PPOConfig, config["name"], "expert_ppo", config["expert_ppo"])
         self.expert_seed = int(config["dataset"]["seed"])
         self._expert_path: Path | None = None
+
+    def data_frame_every(self) -> int:
+        """The demonstrations record every physics step (`rl/demos.py`)."""
+        return 1
 
     @property
     def dataset_config(self) -> Mapping[str, Any]:
