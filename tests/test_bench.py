@@ -5,6 +5,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from mftcn_bench.cli import main
 from mftcn_bench.perf import bench, bench_probe
@@ -142,17 +143,21 @@ def test_image_sized_offscreen_buffer_renders_the_same_pixels():
         ours.step(rng.uniform(-1, 1, 1))
 
 
-def test_the_rendering_only_reference_renders_what_mftcn5_sees_and_embeds_nothing():
+@pytest.mark.parametrize(("stream", "rendered"), [("physics-rate", 5), ("agent-rate", 1)])
+def test_the_rendering_only_reference_renders_what_mftcn5_sees_and_embeds_nothing(stream, rendered):
     """The PPO-on-pixels target compares mfTCN5's rollout with the same loop minus the encoder: the same
-    environments rendering the same frames per agent step, observations of the same size, all zero."""
+    environments rendering the same frames per agent step, observations of the same size, all zero. On the
+    physics-rate stream a clip reaches the last 5 of 8 physics steps; on the agent-rate stream it is the
+    last 5 agent steps, one rendered frame each."""
     import dataclasses
 
     sizes = dataclasses.replace(bench.QUICK, ppo_envs=2, ppo_pixel_steps=2)
-    subject, repeat = bench._suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps)
-    reference, same_repeat = bench._suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, render_only=True)
+    task = bench.STREAMS[stream]
+    subject, repeat = bench._suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, task)
+    reference, same_repeat = bench._suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, task, render_only=True)
     try:
         assert repeat == same_repeat == 8
-        assert reference.env.render_steps == subject.env.render_steps == 5  # lookback 5 of 8 repeats
+        assert reference.env.render_steps == subject.env.render_steps == rendered
         observed = next(iter(reference))["observation"]
         assert observed.shape == next(iter(subject))["observation"].shape == (2, 2, 32)
         assert not observed.any()

@@ -1,6 +1,9 @@
 """End-to-end smoke runs of the control tasks through the CLI: every task with the four reference rows."""
 
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -17,7 +20,7 @@ def control_home(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("task", ["swingup", "swingup-moving", "cheetah"])
+@pytest.mark.parametrize("task", ["swingup", "swingup-agent-rate", "swingup-moving", "cheetah"])
 @pytest.mark.parametrize("encoder", ENCODERS)
 def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encoder, capsys):
     code = main(["run", "--encoder", encoder, "--task", task, "--preset", "smoke", "--no-progress",
@@ -43,7 +46,7 @@ def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encod
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("task", ["swingup-difference", "swingup-probe-state"])
+@pytest.mark.parametrize("task", ["swingup-difference", "swingup-agent-rate-difference", "swingup-probe-state"])
 def test_smoke_run_of_a_ppo_limit_analysis(control_home, task, capsys):
     """The PPO-limit variants run mftcn5 end to end; the probe-state one stores its readout's test R^2."""
     code = main(["run", "--encoder", "mftcn5", "--task", task, "--preset", "smoke", "--no-progress",
@@ -57,3 +60,24 @@ def test_smoke_run_of_a_ppo_limit_analysis(control_home, task, capsys):
         assert record.metrics["probe_r2_mean"] == pytest.approx(np.mean(r2))
         assert all(np.isfinite(r2)) and "probe R^2 (mean of 5)" in out
         assert any(note.startswith("policy input: the probe's prediction") for note in record.config["notes"])
+
+
+def _cli(args: list[str], home) -> subprocess.CompletedProcess:
+    """The installed command as a new user runs it: a fresh process, MUJOCO_GL unset, one thread."""
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"} | {"OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-m", "mftcn_bench.cli", *args, "--no-progress", "--home", str(home)],
+                          capture_output=True, text=True, env=env, timeout=600)
+
+
+@pytest.mark.slow
+def test_a_probe_run_then_a_swingup_run_share_one_dataset_and_one_fit_and_print_no_glfw_line(tmp_path):
+    """With MUJOCO_GL unset (a new user's shell), the probe and the control path choose the same GL backend
+    before MuJoCo is first imported: no GLFW warning, one data set, one fit of the shared encoder."""
+    probe = _cli(["run", "--encoder", "mftcn1", "--task", "cartpole-probe", "--preset", "smoke"], tmp_path)
+    control = _cli(["run", "--encoder", "mftcn1", "--task", "swingup", "--preset", "smoke"], tmp_path)
+    assert probe.returncode == 0 and control.returncode == 0, probe.stderr + control.stderr
+    assert "GLFW" not in probe.stderr + control.stderr
+    assert len([p for p in (tmp_path / "datasets").iterdir() if not p.name.startswith(".")]) == 1
+    assert len([p for p in (tmp_path / "encoders").iterdir() if not p.name.startswith(".")]) == 1
+    [record] = ResultStore(tmp_path / "results.sqlite").query(task="swingup")
+    assert record.config["fit"]["reused"] is True and record.config["fit"]["fitted"] is False
