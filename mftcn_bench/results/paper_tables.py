@@ -216,5 +216,38 @@ SWINGUP_LIMITS = PaperTable(
     other_runs=False,
 )
 
+# --- Not in the paper: the encoder's stream of frames at the physics rate and at the agent rate (issue 34) --
+_STREAMS = (("physics rate (0.01 s)", ""), ("agent rate (0.08 s)", "-agent-rate"))  # label, task name suffix
+PROBE_STREAMS = PaperTable(
+    name="probe-streams",
+    title="Cartpole state regression (MSE, R^2) on the two streams of frames",
+    label_headers=("Stream", "Encoder"),
+    columns=(MetricColumn("average", "Average"), MetricColumn("motion", "Motion"))
+    + tuple(MetricColumn(f"r2_{k}", f"R^2 {_TARGET_LABELS[k]}") for k in TARGETS),
+    rows=tuple(PaperRow((stream, encoder), encoder, f"cartpole-probe{suffix}")
+               for stream, suffix in _STREAMS for encoder in ("lite0-features", "mftcn1", "mftcn5")),
+    note="Physics rate: cartpole-probe (a frame every simulator step, the paper's Table 1 data); agent rate: "
+         "cartpole-probe-agent-rate (a frame every 8 simulator steps, swing-up's action repeat), the same frame "
+         "counts. The targets' variances differ between the streams (theta_dot about 47 against 16 at the "
+         "agent rate), so compare the R^2 columns across streams, the MSEs within one.",
+    other_runs=False,
+)
+SWINGUP_STREAMS = PaperTable(
+    name="swingup-streams",
+    title="Cartpole swing-up at 96x48 by the encoder's stream of frames and the policy's input",
+    label_headers=("Stream", "Input to PPO"),
+    columns=_RETURN_COLUMNS,
+    rows=(PaperRow(("-", "True state"), "true-state", "swingup"),)
+    + tuple(PaperRow((stream, f"{encoder} {view}"), encoder, f"swingup{suffix}{variant}")
+            for stream, suffix in _STREAMS for encoder in ("mftcn1", "mftcn5")
+            for view, variant in (("e_t", ""), ("[e_t, e_t - e_t-1]", "-difference"))),
+    note="The same PPO frames on every row (the quick preset: 1 M). Physics rate: swingup and "
+         "swingup-difference (the encoder trained on cartpole-random, clips of consecutive simulator frames, "
+         "e_t-1 the frame before inside the action repeat); agent rate: swingup-agent-rate[-difference] (trained "
+         "on cartpole-agent-rate, one frame per agent step, e_t-1 the agent step before).",
+    decimals=2,
+    other_runs=False,
+)
+
 TABLES: dict[str, PaperTable] = {t.name: t for t in (PROBE, SWINGUP, CHEETAH, POURING, POURING_ATTRIBUTES,
-                                                     SWINGUP_LIMITS)}
+                                                     SWINGUP_LIMITS, PROBE_STREAMS, SWINGUP_STREAMS)}
