@@ -102,8 +102,14 @@ def test_latex_format_escapes_and_uses_pm(tmp_path):
 
 def test_every_table_renders_from_an_empty_store(tmp_path):
     text = report(ResultStore(tmp_path / "r.sqlite"), list(TABLES))
-    assert text.count("### ") == len(TABLES) == 6
+    assert text.count("### ") == len(TABLES) == 8
     assert "- (0.0198)" in text and "- (811.10)" in text and "- (8.9)" in text
+
+
+def test_report_offers_every_table():
+    from mftcn_bench.cli.results_commands import REPORT_CHOICES
+
+    assert REPORT_CHOICES == [*TABLES, "all"]
 
 
 def test_a_task_encoder_default_embedding_size_is_the_paper_row_not_an_override():
