@@ -151,13 +151,15 @@ def test_the_rendering_only_reference_renders_what_mftcn5_sees_and_embeds_nothin
     last 5 agent steps, one rendered frame each."""
     import dataclasses
 
+    from mftcn_bench.rl.suite_env import suite_env_of
+
     sizes = dataclasses.replace(bench.QUICK, ppo_envs=2, ppo_pixel_steps=2)
     task = bench.STREAMS[stream]
     subject, repeat = bench._suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, task)
     reference, same_repeat = bench._suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, task, render_only=True)
     try:
         assert repeat == same_repeat == 8
-        assert reference.env.render_steps == subject.env.render_steps == rendered
+        assert suite_env_of(reference.env).stream_frames == suite_env_of(subject.env).stream_frames == rendered
         observed = next(iter(reference))["observation"]
         assert observed.shape == next(iter(subject))["observation"].shape == (2, 2, 32)
         assert not observed.any()

@@ -115,7 +115,7 @@ def test_pixel_critic_sees_one_environment_at_a_time_when_computing_advantages(t
     tens of GB of CNN activations at 160x160."""
     from torch import nn
 
-    from mftcn_bench.rl.suite_env import PixelClip, SuiteBatchEnv
+    from mftcn_bench.rl.observation import PixelClip, observed_env
 
     no_grad_batches: list[int] = []
 
@@ -132,8 +132,8 @@ def test_pixel_critic_sees_one_environment_at_a_time_when_computing_advantages(t
                 no_grad_batches.append(flat.shape[0])
             return self.linear(flat).reshape(*clips.shape[:-4], 4)
 
-    def make_env(num_envs: int, seed: int) -> SuiteBatchEnv:
-        return SuiteBatchEnv(ENV, num_envs, seed, None, 4, True, pixel_clip=PixelClip(1, 1))
+    def make_env(num_envs: int, seed: int):
+        return observed_env(ENV, num_envs, seed, None, 4, True, pixel_clip=PixelClip(1, 1))
 
     config = PPOConfig(**{**PPO.__dict__, "frames": 160, "num_envs": 3})
     train_ppo(make_env, config, 0, tmp_path, lambda *args: None, trunk=Trunk())
@@ -228,3 +228,51 @@ def test_ppo_raises_the_return_of_a_small_task(tmp_path):
 
     assert rise(config, tmp_path / "learns") > 10.0
     assert abs(rise(replace(config, lr=0.0), tmp_path / "frozen")) < 10.0
+
+
+def test_the_objectives_are_the_specs_and_gae_bootstraps_at_the_time_limit_only():
+    """ppo_objectives holds the spec's settings, and on an episode the environment ends by its time limit
+    (truncated, not terminated) GAE's target at the last step is r + gamma V(s'): the critic's value of the
+    state after the limit, which a terminated episode would not have."""
+    from mftcn_bench.rl.observation import observed_env
+    from mftcn_bench.rl.observers import StateObserver
+    from mftcn_bench.rl.ppo import PolicyNetworks, ppo_objectives
+
+    env = observed_env(ENV, 2, 0, StateObserver(), 5, False)
+    nets = PolicyNetworks(env, PPO, None)
+    loss, gae = ppo_objectives(nets, PPO)
+    settings = [float(x) for x in (loss.clip_epsilon, loss.entropy_coeff, loss.critic_coeff, loss.clip_value,
+                                   gae.gamma, gae.lmbda)]
+    assert settings == pytest.approx([PPO.clip_epsilon, PPO.entropy_coeff, PPO.critic_coeff, PPO.clip_value,
+                                      PPO.gamma, PPO.lmbda], rel=1e-6)
+    assert loss.normalize_advantage and loss.loss_critic_type == "l2" and not gae.average_gae
+
+    with torch.no_grad():
+        rollout = env.rollout(ENV.agent_steps, nets.policy, break_when_any_done=False)
+    last = rollout[:, -1]
+    assert bool(last.get(("next", "truncated")).all()) and not bool(rollout.get(("next", "terminated")).any())
+    with torch.no_grad():
+        gae(rollout)
+        v_next = nets.value(last.get("next").clone()).get("state_value")
+    expected = last.get(("next", "reward")) + PPO.gamma * v_next
+    assert torch.allclose(rollout[:, -1].get("value_target"), expected, atol=1e-5), "bootstrapped at truncation"
+    terminated = rollout.clone()
+    terminated.set(("next", "terminated"), terminated.get(("next", "truncated")).clone())
+    with torch.no_grad():
+        gae(terminated)
+    assert torch.allclose(terminated[:, -1].get("value_target"), last.get(("next", "reward")), atol=1e-5)
+
+
+def test_a_task_that_terminates_is_refused_in_one_line():
+    from mftcn_bench.core.errors import TrainingError
+    from mftcn_bench.rl.observation import observed_env
+    from mftcn_bench.rl.observers import StateObserver
+    from mftcn_bench.rl.suite_env import suite_env_of
+
+    env = observed_env(ENV, 1, 0, StateObserver(), 5, False)
+    td = env.reset()
+    task = suite_env_of(env)._envs[0].task
+    task.get_termination = lambda physics: 0.0  # as a suite task whose episode ended early
+    td.set("action", torch.zeros(1, 1))
+    with pytest.raises(TrainingError, match="ended an episode early .* tasks that never terminate"):
+        env.step(td)

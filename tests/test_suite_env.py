@@ -7,8 +7,9 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from mftcn_bench.core.errors import SpecError
+from mftcn_bench.rl.observation import observed_env
 from mftcn_bench.rl.observers import StateObserver
-from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig
+from mftcn_bench.rl.suite_env import SuiteConfig
 from mftcn_bench.sim.rendering import RenderSettings
 
 RENDER = RenderSettings(shadowsize=16, offsamples=0, shadows=False, reflection=False)
@@ -33,7 +34,7 @@ class CountingObserver:
 
 
 def test_specs_and_fixed_length_episodes():
-    env = SuiteBatchEnv(CONFIG, 3, seed=0, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
+    env = observed_env(CONFIG, 3, seed=0, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
     check_env_specs(env)
     rollout = env.rollout(CONFIG.agent_steps, break_when_any_done=False)
     done = rollout.get(("next", "done")).squeeze(-1)
@@ -44,10 +45,10 @@ def test_specs_and_fixed_length_episodes():
 def test_reward_is_the_sum_over_the_action_repeat_and_states_are_reproducible():
     from dm_control import suite
 
-    env = SuiteBatchEnv(CONFIG, 2, seed=5, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
+    env = observed_env(CONFIG, 2, seed=5, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
     td = env.reset()
     first_obs = td.get("observation").clone()
-    physics = [e.physics.get_state().copy() for e in env._envs]
+    physics = [e.physics.get_state().copy() for e in env.base_env._envs]
     action = torch.tensor([[0.5], [-0.25]])
     td.set("action", action)
     reward = env.step(td).get(("next", "reward")).squeeze(-1)
@@ -58,14 +59,14 @@ def test_reward_is_the_sum_over_the_action_repeat_and_states_are_reproducible():
             plain.physics.set_state(physics[i])
         expected = sum(plain.step(action[i].numpy().astype(np.float64)).reward for _ in range(CONFIG.action_repeat))
         assert abs(float(reward[i]) - expected) < 1e-5
-    again = SuiteBatchEnv(CONFIG, 2, seed=5, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
+    again = observed_env(CONFIG, 2, seed=5, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
     assert torch.equal(again.reset().get("observation"), first_obs)  # same seed, same initial states
     assert not torch.equal(again.reset().get("observation"), first_obs)  # the next episode differs
 
 
 def test_renders_only_the_frames_a_clip_can_reach():
     observer = CountingObserver()
-    env = SuiteBatchEnv(CONFIG, 2, seed=0, observer=observer, embedding_dim=4, observer_uses_pixels=True,
+    env = observed_env(CONFIG, 2, seed=0, observer=observer, embedding_dim=4, observer_uses_pixels=True,
                         lookback=3)
     td = env.reset()
     td.set("action", torch.zeros(2, 1))
@@ -76,7 +77,7 @@ def test_renders_only_the_frames_a_clip_can_reach():
     # only the last frame of the repeat is embedded (the observation the policy reads)
     assert [p[2] for p in observer.pushes] == ["push", "observe", "observe", "push"]
     blind = CountingObserver()
-    env = SuiteBatchEnv(CONFIG, 2, seed=0, observer=blind, embedding_dim=4, observer_uses_pixels=False, lookback=3)
+    env = observed_env(CONFIG, 2, seed=0, observer=blind, embedding_dim=4, observer_uses_pixels=False, lookback=3)
     td = env.reset()
     td.set("action", torch.zeros(2, 1))
     env.step(td)
@@ -89,18 +90,18 @@ def test_embedding_difference_is_the_change_since_the_previous_simulator_frame()
     from mftcn_bench.encoders.baselines import state_embedding
 
     config = replace(CONFIG, embedding_difference=True)
-    env = SuiteBatchEnv(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
+    env = observed_env(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
     check_env_specs(env)
     from dm_control import suite
 
     td = env.reset()
     assert td.get("observation").shape == (2, 10) and torch.all(td.get("observation")[:, 5:] == 0)
     for _ in range(3):
-        start = env._envs[0].physics.get_state().copy()
+        start = env.base_env._envs[0].physics.get_state().copy()
         td.set("action", torch.full((2, 1), 0.7))
         td = env.step(td)["next"]
         obs = td.get("observation").numpy()
-        now = np.stack([np.concatenate([e.physics.data.qpos, e.physics.data.qvel]) for e in env._envs])
+        now = np.stack([np.concatenate([e.physics.data.qpos, e.physics.data.qvel]) for e in env.base_env._envs])
         assert np.allclose(obs[:, :5], state_embedding(now), atol=1e-5)
         plain = suite.load("cartpole", "swingup")  # the same physics, one step short of the repeat
         plain.reset()
@@ -111,7 +112,7 @@ def test_embedding_difference_is_the_change_since_the_previous_simulator_frame()
         earlier = np.concatenate([plain.physics.data.qpos, plain.physics.data.qvel])[None]
         assert np.allclose(obs[0, :5] - obs[0, 5:], state_embedding(earlier)[0], atol=1e-5)
     counting = CountingObserver()
-    env = SuiteBatchEnv(config, 2, seed=0, observer=counting, embedding_dim=4, observer_uses_pixels=True, lookback=1)
+    env = observed_env(config, 2, seed=0, observer=counting, embedding_dim=4, observer_uses_pixels=True, lookback=1)
     td = env.reset()
     td.set("action", torch.zeros(2, 1))
     env.step(td)
@@ -129,10 +130,10 @@ def test_the_stream_has_the_data_sets_frame_rate():
 
     def cart_positions(every: int, lookback: int) -> tuple[list[float], list[str]]:
         observer = CountingObserver()
-        env = SuiteBatchEnv(replace(CONFIG, frame_every=every), 1, seed=0, observer=observer, embedding_dim=4,
+        env = observed_env(replace(CONFIG, frame_every=every), 1, seed=0, observer=observer, embedding_dim=4,
                             observer_uses_pixels=True, lookback=lookback)
         td = env.reset()
-        start = env._envs[0].physics.get_state().copy()
+        start = env.base_env._envs[0].physics.get_state().copy()
         for _ in range(2):
             td.set("action", torch.full((1, 1), 0.5))
             td = env.step(td)["next"]
@@ -168,14 +169,14 @@ def test_the_difference_on_an_agent_rate_stream_is_the_change_since_the_last_age
     from mftcn_bench.encoders.baselines import state_embedding
 
     config = replace(CONFIG, embedding_difference=True, frame_every=CONFIG.action_repeat)
-    env = SuiteBatchEnv(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
+    env = observed_env(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
     td = env.reset()
     previous = td.get("observation").numpy()[:, :5]
     for _ in range(3):
         td.set("action", torch.full((2, 1), 0.7))
         td = env.step(td)["next"]
         obs = td.get("observation").numpy()
-        now = np.stack([np.concatenate([e.physics.data.qpos, e.physics.data.qvel]) for e in env._envs])
+        now = np.stack([np.concatenate([e.physics.data.qpos, e.physics.data.qvel]) for e in env.base_env._envs])
         assert np.allclose(obs[:, :5], state_embedding(now), atol=1e-5)
         assert np.allclose(obs[:, 5:], obs[:, :5] - previous, atol=1e-5)
         previous = obs[:, :5]
@@ -194,11 +195,11 @@ def test_readout_maps_the_observation_before_the_policy_sees_it():
     from dataclasses import replace
 
     config = replace(CONFIG, embedding_difference=True)
-    plain = SuiteBatchEnv(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
-    mapped = SuiteBatchEnv(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False,
+    plain = observed_env(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False)
+    mapped = observed_env(config, 2, seed=3, observer=StateObserver(), embedding_dim=5, observer_uses_pixels=False,
                            readout=SumReadout())
     assert mapped.observation_spec["observation"].shape == (2, 2)
-    check_env_specs(SuiteBatchEnv(config, 2, seed=3, observer=StateObserver(), embedding_dim=5,
+    check_env_specs(observed_env(config, 2, seed=3, observer=StateObserver(), embedding_dim=5,
                                   observer_uses_pixels=False, readout=SumReadout()))
     td_plain, td_mapped = plain.reset(), mapped.reset()
     for _ in range(3):  # the same physics: the readout of the plain observation ([e_t, e_t - e_t-1]) each step

@@ -271,9 +271,9 @@ def _suite_collector(encoder_name: str, sizes: Sizes, agent_steps: int, task: st
     from mftcn_bench.core.device import DevicePlaced
     from mftcn_bench.core.specs import encoder_spec_from_config
     from mftcn_bench.encoders.base import uses_pixels
+    from mftcn_bench.rl.observation import observed_env
     from mftcn_bench.rl.observers import make_observer
     from mftcn_bench.rl.ppo import PolicyNetworks
-    from mftcn_bench.rl.suite_env import SuiteBatchEnv
     from mftcn_bench.run.runner import RunRequest, prepare
 
     repeat = _control_task(task, "true-state").env_config.action_repeat
@@ -287,8 +287,8 @@ def _suite_collector(encoder_name: str, sizes: Sizes, agent_steps: int, task: st
     info = encoder.info
     observer = (_RenderOnlyObserver(info.embedding_dim, sizes.ppo_envs) if render_only
                 else make_observer(encoder, sizes.ppo_envs))
-    env = SuiteBatchEnv(control.env_config, sizes.ppo_envs, 0, observer, info.embedding_dim,
-                        uses_pixels(encoder), lookback=info.lookback)
+    env = observed_env(control.env_config, sizes.ppo_envs, 0, observer, info.embedding_dim, uses_pixels(encoder),
+                       lookback=info.lookback)
     nets = PolicyNetworks(env, control.ppo, None).to(device or "cpu")
     return _collector(env, nets.policy, sizes.ppo_envs * agent_steps, device), repeat
 

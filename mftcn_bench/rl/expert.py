@@ -16,13 +16,15 @@ from pathlib import Path
 import numpy as np
 import torch
 from tensordict import TensorDict
+from torchrl.envs import TransformedEnv
 
 from mftcn_bench.core import identity
 from mftcn_bench.core.errors import TrainingError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
+from mftcn_bench.rl.observation import observed_env
 from mftcn_bench.rl.observers import StateObserver
 from mftcn_bench.rl.ppo import PolicyNetworks, PPOConfig, evaluate_policy, train_ppo
-from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig, physics_state
+from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig
 
 
 def expert_key(env: SuiteConfig, ppo: PPOConfig, seed: int) -> str:
@@ -31,12 +33,11 @@ def expert_key(env: SuiteConfig, ppo: PPOConfig, seed: int) -> str:
 
 def state_env_factory(env_config: SuiteConfig):
     """Environments whose observation is the simulator state (nothing rendered)."""
-    probe = SuiteBatchEnv(env_config, 1, 0, StateObserver(), 1, False)
-    state = physics_state(probe._envs[0].physics, env_config.domain)[None]
-    state_dim = int(StateObserver().push(None, np.ones(1, bool), state).shape[1])
+    simulator_dim = SuiteBatchEnv(env_config, 1, 0).observation_spec["state"].shape[-1]
+    state_dim = int(StateObserver().push(None, np.ones(1, bool), np.zeros((1, simulator_dim))).shape[1])
 
-    def make_env(num_envs: int, seed: int) -> SuiteBatchEnv:
-        return SuiteBatchEnv(env_config, num_envs, seed, StateObserver(), state_dim, False)
+    def make_env(num_envs: int, seed: int) -> TransformedEnv:
+        return observed_env(env_config, num_envs, seed, StateObserver(), state_dim, False)
 
     return make_env
 

@@ -1,4 +1,4 @@
-"""PPO on a frozen embedding with torchrl: ClipPPOLoss, GAE and a Collector over `SuiteBatchEnv`.
+"""PPO on a frozen embedding with torchrl: ClipPPOLoss, GAE and a Collector over `SuiteBatchEnv` (transformed).
 
 One training batch is `episodes_per_batch` whole episodes of every environment: the collector resets
 the batch at the start of each one and each environment's initial state comes from (seed, instance,
@@ -28,7 +28,7 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from tensordict.nn.distributions.continuous import AddStateIndependentNormalScale
 from torch import nn
 from torchrl.collectors import Collector
-from torchrl.envs import ExplorationType, set_exploration_type
+from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 from torchrl.modules import MLP, ActorValueOperator, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
@@ -36,7 +36,7 @@ from torchrl.objectives.value import GAE
 from mftcn_bench.core.device import cuda_rng_state, restore_cuda_rng_state
 from mftcn_bench.core.errors import SpecError, TrainingError
 from mftcn_bench.core.fileio import atomic_write_bytes
-from mftcn_bench.rl.suite_env import EnvFactory, SuiteBatchEnv
+from mftcn_bench.rl.suite_env import EnvFactory, suite_env_of
 
 DISTRIBUTIONS = {"tanh_normal": TanhNormal, "normal": IndependentNormal}
 
@@ -115,7 +115,7 @@ class RunningNormalizer(nn.Module):
 class PolicyNetworks(nn.Module):
     """Actor and critic (with a shared trunk for pixel input); built from the environment's specs."""
 
-    def __init__(self, env: SuiteBatchEnv, config: PPOConfig, trunk: nn.Module | None) -> None:
+    def __init__(self, env: EnvBase, config: PPOConfig, trunk: nn.Module | None) -> None:
         super().__init__()
         action_dim = env.action_spec.shape[-1]
         in_key = "observation" if trunk is None else "pixels"
@@ -161,6 +161,20 @@ def episode_returns(batch, num_envs: int, agent_steps: int) -> np.ndarray:
     return reward.sum(-1).flatten().double().cpu().numpy()
 
 
+def ppo_objectives(nets: PolicyNetworks, config: PPOConfig, pixels: bool = False) -> tuple[ClipPPOLoss, GAE]:
+    """The clipped PPO loss and the GAE estimator of `config`. GAE bootstraps from the critic where an
+    episode is truncated (the time limit: `SuiteBatchEnv` marks it truncated, never terminated) and would
+    not where one terminates."""
+    loss = ClipPPOLoss(nets.policy, nets.value, clip_epsilon=config.clip_epsilon, clip_value=config.clip_value,
+                       entropy_coeff=config.entropy_coeff, critic_coeff=config.critic_coeff,
+                       loss_critic_type="l2", normalize_advantage=True)
+    # With a pixel trunk the critic sees one environment's steps at a time: all of a batch's observations
+    # and next observations at once (2 x 4,000 clips of 160x160) need more than 20 GB of CNN activations.
+    advantage = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=nets.value, average_gae=False,
+                    value_chunk_size=1 if pixels else None)
+    return loss, advantage
+
+
 def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
               progress: Progress, trunk: nn.Module | None = None,
               device: torch.device | None = None) -> tuple[PolicyNetworks, TrainState]:
@@ -171,18 +185,13 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
     device = device or torch.device("cpu")
     torch.manual_seed(seed)
     env = make_env(config.num_envs, seed)
-    agent_steps = env.config.agent_steps
+    suite = suite_env_of(env)
+    agent_steps = suite.config.agent_steps
     nets = PolicyNetworks(env, config, trunk).to(device)
-    loss = ClipPPOLoss(nets.policy, nets.value, clip_epsilon=config.clip_epsilon, clip_value=config.clip_value,
-                       entropy_coeff=config.entropy_coeff, critic_coeff=config.critic_coeff,
-                       loss_critic_type="l2", normalize_advantage=True)
-    # With a pixel trunk the critic sees one environment's steps at a time: all of a batch's observations
-    # and next observations at once (2 x 4,000 clips of 160x160) need more than 20 GB of CNN activations.
-    advantage = GAE(gamma=config.gamma, lmbda=config.lmbda, value_network=nets.value, average_gae=False,
-                    value_chunk_size=None if trunk is None else 1)
+    loss, advantage = ppo_objectives(nets, config, pixels=trunk is not None)
     optimizer = torch.optim.Adam(loss.parameters(), lr=config.lr)
     batch_steps = config.num_envs * config.episodes_per_batch * agent_steps
-    frames_per_batch = batch_steps * env.config.action_repeat
+    frames_per_batch = batch_steps * suite.config.action_repeat
     total_batches = max(1, math.ceil(config.frames / frames_per_batch))
 
     state, rng = TrainState(), None
@@ -199,7 +208,7 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
         restore_cuda_rng_state(cuda_rng)
     # Batch k's episodes start from initial states numbered k * episodes_per_batch, ... (see SuiteBatchEnv):
     # set before each rollout, whatever resets the collector made in between.
-    env.episode_index = state.batch * config.episodes_per_batch
+    suite.episode_index = state.batch * config.episodes_per_batch
     began = time.monotonic() - state.wall_s
     for batch in collector:
         returns = episode_returns(batch, config.num_envs, agent_steps)
@@ -220,7 +229,7 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
         if state.batch % config.checkpoint_every == 0 or state.batch == total_batches:
             _save_checkpoint(checkpoint, nets, optimizer, state)
         progress(state.batch, total_batches, {"return": float(returns.mean()), **stats})
-        env.episode_index = state.batch * config.episodes_per_batch
+        suite.episode_index = state.batch * config.episodes_per_batch
     collector.shutdown()
     return nets, state
 
@@ -281,7 +290,7 @@ def evaluate_policy(make_env: EnvFactory, nets: PolicyNetworks, episodes: int,
     """Returns of `episodes` test episodes with the policy's deterministic (mean) action, on environments
     seeded apart from training; the policy runs on `device` (where `nets` are), the environments on the CPU."""
     eval_env = make_env(num_envs, seed + 1_000_003)
-    steps = eval_env.config.agent_steps
+    steps = suite_env_of(eval_env).config.agent_steps
     returns: list[float] = []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         while len(returns) < episodes:

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from sklearn.metrics import r2_score
 from torch import nn
+from torchrl.envs import TransformedEnv
 
 from mftcn_bench.core.errors import SpecError
 from mftcn_bench.core.home import BenchHome
@@ -37,9 +38,10 @@ from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder, trains_with_policy, uses_pixels
 from mftcn_bench.rl.demos import ExpertDemoCollector
 from mftcn_bench.rl.expert import ensure_expert, expert_key
+from mftcn_bench.rl.observation import PixelClip, Readout, observed_env
 from mftcn_bench.rl.observers import make_observer
 from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
-from mftcn_bench.rl.suite_env import PixelClip, Readout, SuiteBatchEnv, SuiteConfig
+from mftcn_bench.rl.suite_env import SuiteConfig
 from mftcn_bench.sim.rendering import RenderSettings
 from mftcn_bench.sim.suite_limits import check_dataset_fits, check_episode_fits
 from mftcn_bench.tasks.base import TaskResult
@@ -104,13 +106,12 @@ class ControlTask:
         info = encoder.info
         joint = trains_with_policy(encoder)
 
-        def make_env(num_envs: int, seed: int) -> SuiteBatchEnv:
+        def make_env(num_envs: int, seed: int) -> TransformedEnv:
             if joint:
-                return SuiteBatchEnv(self.env_config, num_envs, seed, None, info.embedding_dim, True,
-                                     pixel_clip=PixelClip(info.frames, info.stride))
-            return SuiteBatchEnv(self.env_config, num_envs, seed, make_observer(encoder, num_envs),
-                                 info.embedding_dim, uses_pixels(encoder), lookback=info.lookback,
-                                 readout=readout)
+                return observed_env(self.env_config, num_envs, seed, None, info.embedding_dim, True,
+                                    pixel_clip=PixelClip(info.frames, info.stride))
+            return observed_env(self.env_config, num_envs, seed, make_observer(encoder, num_envs),
+                                info.embedding_dim, uses_pixels(encoder), lookback=info.lookback, readout=readout)
 
         trunk = ClipTrunk(encoder.net, info.embedding_dim) if joint else None
         return make_env, trunk
