@@ -81,3 +81,23 @@ def test_a_probe_run_then_a_swingup_run_share_one_dataset_and_one_fit_and_print_
     assert len([p for p in (tmp_path / "encoders").iterdir() if not p.name.startswith(".")]) == 1
     [record] = ResultStore(tmp_path / "results.sqlite").query(task="swingup")
     assert record.config["fit"]["reused"] is True and record.config["fit"]["fitted"] is False
+
+
+def test_no_progress_reaches_ppos_progress_bar(tmp_path, monkeypatch):
+    """`--no-progress` turns PPO's bar off (the runner tells the task, `tasks.base.ShowsProgress`); without
+    it tqdm decides (a bar on a terminal)."""
+    import tqdm
+
+    disabled: list[object] = []
+    real = tqdm.tqdm
+
+    def recording(*args, **kwargs):
+        if str(kwargs.get("desc", "")).startswith("ppo "):
+            disabled.append(kwargs.get("disable"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(tqdm, "tqdm", recording)
+    for flag in (["--no-progress"], []):
+        assert main(["run", "--encoder", "true-state", "--task", "swingup", "--preset", "smoke", "--force",
+                     "--home", str(tmp_path), *flag]) == 0
+    assert disabled == [True, None]

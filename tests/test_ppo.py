@@ -1,5 +1,6 @@
 """PPO on the batched environment: reproducible from the seed, and a killed run resumes exactly."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -276,3 +277,32 @@ def test_a_task_that_terminates_is_refused_in_one_line():
     td.set("action", torch.zeros(1, 1))
     with pytest.raises(TrainingError, match="ended an episode early .* tasks that never terminate"):
         env.step(td)
+
+
+def test_evaluation_starts_every_test_episode_from_its_own_initial_state(tmp_path):
+    """evaluate_policy's episodes (over several rollouts of a batch of environments) all start from distinct
+    initial states, and from other ones than training's (its environments are seeded apart)."""
+    from mftcn_bench.rl.observation import observed_env
+    from mftcn_bench.rl.observers import StateObserver
+    from mftcn_bench.rl.ppo import PolicyNetworks
+
+    starts: list[tuple[float, ...]] = []
+
+    class Recording(StateObserver):
+        def push(self, frames, episode_start, state):
+            if episode_start.all():
+                starts.extend(tuple(row) for row in np.round(state, 12))
+            return super().push(frames, episode_start, state)
+
+    def make_env(num_envs: int, seed: int):
+        return observed_env(ENV, num_envs, seed, Recording(), 5, False)
+
+    nets = PolicyNetworks(make_env(2, 0), PPO, None)
+    starts.clear()
+    returns = evaluate_policy(make_env, nets, episodes=6, num_envs=2, seed=0)
+    assert len(returns) == 6 and len(starts) == 6
+    assert len(set(starts)) == 6, "every test episode from its own initial state"
+    evaluated = set(starts)
+    starts.clear()
+    make_env(2, 0).reset()  # training's first episodes, the same run seed
+    assert len(starts) == 2 and not set(starts) & evaluated

@@ -35,7 +35,7 @@ from mftcn_bench.encoders.bases import FrozenBase
 from mftcn_bench.encoders.feature_cache import ensure_feature_cache
 from mftcn_bench.results.store import ResultStore, RunRecord
 from mftcn_bench.sim.rendering import follow_device
-from mftcn_bench.tasks.base import NeedsArtifacts, Task
+from mftcn_bench.tasks.base import NeedsArtifacts, ShowsProgress, Task
 
 
 @dataclass(frozen=True)
@@ -303,6 +303,8 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
         shutil.rmtree(run_dir, ignore_errors=True)
     run_dir.mkdir(parents=True, exist_ok=True)
     try:
+        if isinstance(prepared.task, ShowsProgress):
+            prepared.task.show_progress(show_progress)
         result = prepared.task.evaluate(encoder, dataset, run_dir)
     except BaseException:
         if existing is not None or not any(run_dir.iterdir()):  # nothing to resume from: leave no folder behind

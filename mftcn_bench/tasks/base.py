@@ -31,7 +31,7 @@ class TaskResult:
 @runtime_checkable
 class Task(Protocol):
     """Constructed as `cls(config, seed)` from the resolved `task` table. Optional capabilities:
-    `NeedsArtifacts`, `LabelledTask`."""
+    `NeedsArtifacts`, `ShowsProgress`, `LabelledTask`."""
 
     @property
     def dataset_config(self) -> Mapping[str, Any]: ...
@@ -55,6 +55,13 @@ class NeedsArtifacts(Protocol):
     policy); the runner calls `prepare_artifacts` first."""
 
     def prepare_artifacts(self, home: BenchHome, show_progress: bool = True) -> None: ...
+
+
+@runtime_checkable
+class ShowsProgress(Protocol):
+    """A task with progress bars of its own (PPO's); the runner passes `--no-progress` on before evaluating."""
+
+    def show_progress(self, enabled: bool) -> None: ...
 
 
 @runtime_checkable

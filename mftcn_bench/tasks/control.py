@@ -71,6 +71,7 @@ class ControlTask:
     def __init__(self, config: Mapping[str, Any], seed: int) -> None:
         self.config, self.seed = config, seed
         self.device = torch.device("cpu")
+        self._bars = True  # PPO's progress bar where tqdm shows one (a terminal), unless --no-progress
         dataset = config["dataset"]
         seen_as = {"height": dataset["height"], "width": dataset["width"], "frame_every": self.data_frame_every(),
                    "render": RenderSettings.from_table(f"task {config['name']!r}", dataset["render"])}
@@ -82,6 +83,10 @@ class ControlTask:
         if self.env_config.camera not in dataset["cameras"]:
             raise SpecError(f"task {config['name']!r}: [env] camera {self.env_config.camera!r} is not one of the "
                             f"dataset's cameras {', '.join(dataset['cameras'])}")
+
+    def show_progress(self, enabled: bool) -> None:
+        """PPO's progress bar: off with `--no-progress` (`tasks.base.ShowsProgress`)."""
+        self._bars = enabled
 
     def data_frame_every(self) -> int:
         """Physics steps between two frames of the task's data set: its `action_repeat` (the collector steps
@@ -124,7 +129,7 @@ class ControlTask:
         from tqdm import tqdm
 
         make_env, trunk = self._env_factory(encoder, readout)
-        bar = tqdm(desc=f"ppo {self.config['name']}", unit="batch", disable=None, leave=False)
+        bar = tqdm(desc=f"ppo {self.config['name']}", unit="batch", disable=None if self._bars else True, leave=False)
 
         def progress(batch: int, total: int, stats: dict[str, float]) -> None:
             bar.total, bar.n = total, batch
