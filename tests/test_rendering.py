@@ -50,3 +50,32 @@ def test_render_settings_refuse_unknown_keys_in_one_line():
     with pytest.raises(SpecError, match=r"dataset .d.: bad \[render\] table: unknown key\(s\) \[.shadow.\]"):
         rendering.RenderSettings.from_table("dataset 'd'", {"shadowsize": 16, "offsamples": 0, "shadow": False,
                                                             "reflection": False})
+
+
+def test_a_cuda_device_renders_on_the_egl_device_that_drives_it(monkeypatch):
+    """EGL numbers its devices in its own order: the lookup finds the one whose EGL_CUDA_DEVICE_NV is the
+    run's GPU (fakes of the two EGL queries), and follow_device hands its index to MuJoCo."""
+    devices = ["mesa", "nvidia-1", "nvidia-0"]
+    cuda = {"mesa": None, "nvidia-1": 1, "nvidia-0": 0}
+    queries = (lambda: devices, lambda device, name: cuda[device] if name == rendering.EGL_CUDA_DEVICE_NV else None)
+    assert rendering.egl_device_of_cuda(0, queries) == 2 and rendering.egl_device_of_cuda(1, queries) == 1
+    assert rendering.egl_device_of_cuda(2, queries) is None
+
+    def broken():
+        raise AttributeError("no eglQueryDevicesEXT")
+
+    assert rendering.egl_device_of_cuda(0, (broken, queries[1])) is None
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID", raising=False)
+    monkeypatch.setattr(rendering, "_egl_device_queries", lambda: queries)
+    rendering.follow_device("cuda:1")
+    assert rendering.os.environ["MUJOCO_EGL_DEVICE_ID"] == "1"
+
+
+def test_the_egl_queries_load_here():
+    """The real queries resolve on this machine's EGL (Mesa): the device list is readable, and no Mesa device
+    claims a CUDA index."""
+    devices, attribute = rendering._egl_device_queries()
+    found = devices()
+    assert len(found) >= 1
+    assert all(attribute(device, rendering.EGL_CUDA_DEVICE_NV) is None for device in found)

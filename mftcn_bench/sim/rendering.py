@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import ctypes.util
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
@@ -65,29 +65,39 @@ def follow_device(device: str) -> None:
 
 EGL_CUDA_DEVICE_NV = 0x323A
 
+DeviceQueries = tuple[Callable[[], Sequence[object]], Callable[[object, int], int | None]]
 
-def egl_device_of_cuda(cuda_index: int) -> int | None:
+
+def egl_device_of_cuda(cuda_index: int, queries: DeviceQueries | None = None) -> int | None:
     """The EGL device index whose EGL_CUDA_DEVICE_NV is `cuda_index`, or None where EGL or the NVIDIA
-    extension cannot say (CPU machines, Mesa)."""
+    extension cannot say (CPU machines, Mesa). `queries` (the device list and one device's attribute) are
+    EGL's by default, in the order MuJoCo indexes MUJOCO_EGL_DEVICE_ID by."""
     try:
-        os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-        import ctypes
-
-        from OpenGL import EGL
-
-        count = EGL.EGLint()
-        if not EGL.eglQueryDevicesEXT(0, None, ctypes.pointer(count)) or count.value < 1:
-            return None
-        devices = (EGL.EGLDeviceEXT * count.value)()
-        EGL.eglQueryDevicesEXT(count.value, devices, ctypes.pointer(count))
-        for index in range(count.value):
-            value = EGL.EGLAttrib()
-            if EGL.eglQueryDeviceAttribEXT(devices[index], EGL_CUDA_DEVICE_NV, ctypes.pointer(value)) and \
-                    value.value == cuda_index:
+        devices, attribute = queries or _egl_device_queries()
+        for index, device in enumerate(devices()):
+            if attribute(device, EGL_CUDA_DEVICE_NV) == cuda_index:
                 return index
     except Exception:  # noqa: BLE001 - no EGL, no extension, another binding: leave MuJoCo's default
         return None
     return None
+
+
+def _egl_device_queries() -> DeviceQueries:
+    """EGL_EXT_device_enumeration and EGL_EXT_device_query through dm_control's EGL wrappers (PyOpenGL's
+    `OpenGL.EGL` does not export the two extension functions); raises where EGL lacks them."""
+    import ctypes
+
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    from dm_control._render.pyopengl import egl_ext as EGL
+
+    query = ctypes.CFUNCTYPE(EGL.EGLBoolean, EGL.EGLDeviceEXT, EGL.EGLint, ctypes.POINTER(EGL.EGLAttrib))(
+        EGL.eglGetProcAddress("eglQueryDeviceAttribEXT"))
+
+    def attribute(device: object, name: int) -> int | None:
+        value = EGL.EGLAttrib()
+        return int(value.value) if query(device, name, ctypes.byref(value)) else None
+
+    return EGL.eglQueryDevicesEXT, attribute
 
 
 def ensure_gl() -> str:
