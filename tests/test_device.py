@@ -86,7 +86,7 @@ def test_explicit_cpu_run_records_its_device(capsys, tmp_path, monkeypatch):
     monkeypatch.setattr("mftcn_bench.tasks.probe.collect_episode", synthetic_collector)
     home = tmp_path / "home"
     assert main(["run", *TINY_MFTCN, "--device", "cpu", "--deterministic", "--home", str(home)]) == 0
-    torch.use_deterministic_algorithms(False)
+    assert not torch.are_deterministic_algorithms_enabled(), "the run's settings end with the run"
     (record,) = ResultStore(home / "results.sqlite").query()
     assert record.config["device"] == {"device": "cpu", "gpu": None, "cuda": None, "cudnn": None,
                                        "deterministic": True}
@@ -124,3 +124,32 @@ def test_training_checkpoints_keep_the_cuda_random_state_and_load_with_map_locat
     again.load(tmp_path / "m.pt")
     frames = data.load(data.episodes("test")[0]).frames[0]
     assert np.array_equal(again.embed_episode(frames), encoder.embed_episode(frames))
+
+
+def test_deterministic_holds_for_the_run_only(tmp_path, monkeypatch):
+    """`--deterministic` turns torch's deterministic algorithms and full float32 on while the run computes
+    and restores every setting after (a sweep's worker or a test process runs on with its own)."""
+    import torch
+
+    from mftcn_bench.core.home import BenchHome
+    from mftcn_bench.run.runner import RunRequest, run
+    from mftcn_bench.tasks.probe import CartpoleProbe
+
+    seen: list[tuple[bool, str]] = []
+    evaluate = CartpoleProbe.evaluate
+
+    def recording(self, encoder, dataset, workdir=None):
+        seen.append((torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.conv.fp32_precision))
+        return evaluate(self, encoder, dataset, workdir)
+
+    monkeypatch.setattr(CartpoleProbe, "evaluate", recording)
+    before = (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.conv.fp32_precision,
+              torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.deterministic)
+    tiny = (("task.dataset.episode_length", 30), ("task.dataset.train_episodes", 3), ("task.dataset.test_episodes", 1),
+            ("task.dataset.height", 16), ("task.dataset.width", 24), ("task.probe.epochs", 3),
+            ("task.probe.hidden", [8]), ("task.probe.batch_size", 16))
+    run(RunRequest("true-state", "cartpole-probe", "smoke", 0, tiny, device="cpu", deterministic=True),
+        BenchHome.resolve(tmp_path), show_progress=False)
+    assert seen == [(True, "ieee")]
+    assert (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.conv.fp32_precision,
+            torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.deterministic) == before

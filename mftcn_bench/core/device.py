@@ -92,33 +92,46 @@ def resolve_device(name: str, deterministic: bool = False) -> Placement:
                      cudnn=torch.backends.cudnn.version(), deterministic=deterministic)
 
 
-def apply_determinism(placement: Placement) -> None:
-    """With `deterministic`, ask torch for deterministic algorithms (cuDNN's included); bitwise equality
-    across GPU models or library versions is still not promised (see README, determinism)."""
-    if not placement.deterministic:
-        return
-    import torch
-
-    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # cuBLAS needs it for deterministic GEMMs
-    torch.use_deterministic_algorithms(True)
-    torch.backends.cudnn.benchmark = False
-    torch.backends.cudnn.deterministic = True
-    # Full float32 too: TF32 (on by default for cuDNN convolutions) rounds to 10 mantissa bits.
-    torch.backends.cudnn.allow_tf32 = False
-    torch.backends.cuda.matmul.allow_tf32 = False
-
-
 @contextlib.contextmanager
 def full_float32() -> Iterator[None]:
-    """Within: no TF32 in cuDNN convolutions or CUDA matrix products (comparisons with the CPU)."""
+    """Within: no TF32 in cuDNN convolutions or CUDA matrix products (comparisons with the CPU); torch's
+    `fp32_precision` settings, restored after."""
     import torch
 
-    saved = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    conv, matmul = torch.backends.cudnn.conv, torch.backends.cuda.matmul
+    saved = conv.fp32_precision, matmul.fp32_precision
+    conv.fp32_precision = matmul.fp32_precision = "ieee"
     try:
         yield
     finally:
-        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
+        conv.fp32_precision, matmul.fp32_precision = saved
+
+
+@contextlib.contextmanager
+def determinism(placement: Placement) -> Iterator[None]:
+    """Within, with `deterministic`: torch's deterministic algorithms (cuDNN's included) and full float32
+    (TF32, on by default for cuDNN convolutions, rounds to 10 mantissa bits); every setting as it was after,
+    so a run in a longer process (a sweep's worker, a test) leaves nothing behind. Bitwise equality across
+    GPU models or library versions is still not promised (see README, determinism)."""
+    if not placement.deterministic:
+        yield
+        return
+    import torch
+
+    saved = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
+             torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic)
+    workspace = os.environ.get("CUBLAS_WORKSPACE_CONFIG")
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # cuBLAS needs it for deterministic GEMMs
+    torch.use_deterministic_algorithms(True)
+    torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic = False, True
+    try:
+        with full_float32():
+            yield
+    finally:
+        torch.use_deterministic_algorithms(saved[0], warn_only=saved[1])
+        torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic = saved[2], saved[3]
+        if workspace is None:
+            os.environ.pop("CUBLAS_WORKSPACE_CONFIG", None)
 
 
 @runtime_checkable

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from mftcn_bench.core import identity, registry
-from mftcn_bench.core.device import CPU, DevicePlaced, Placement, apply_determinism, resolve_device
+from mftcn_bench.core.device import CPU, DevicePlaced, Placement, determinism, resolve_device
 from mftcn_bench.core.errors import BenchError, BenchWarning, SpecError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.core.home import BenchHome
@@ -49,7 +49,7 @@ class RunRequest:
     overrides: Sequence[tuple[str, Any]] = field(default_factory=tuple)
     force: bool = False
     device: str = "auto"          # auto, cpu, cuda or cuda:N (`core.device`)
-    deterministic: bool = False   # torch's deterministic algorithms (`core.device.apply_determinism`)
+    deterministic: bool = False   # torch's deterministic algorithms during the run (`core.device.determinism`)
 
 
 @dataclass(frozen=True)
@@ -95,7 +95,6 @@ def prepare(request: RunRequest) -> PreparedRun:
     if request.seed < 0:
         raise BenchError(f"seed must be a non-negative integer, got {request.seed}")
     placement = resolve_device(request.device, request.deterministic)
-    apply_determinism(placement)
     follow_device(placement.device)  # before anything renders
     encoder_entry = registry.get("encoders", request.encoder)
     task_entry = registry.get("tasks", request.task)
@@ -279,9 +278,16 @@ class RerunWarning(BenchWarning):
 
 
 def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> RunOutcome:
-    """Run (or reuse) one (encoder, task, preset, seed) and return its stored record."""
+    """Run (or reuse) one (encoder, task, preset, seed) and return its stored record; with
+    `request.deterministic`, torch's deterministic algorithms hold for the run only."""
     began = time.monotonic()
     prepared = prepare(request)
+    with determinism(prepared.placement):
+        return _run(prepared, home, show_progress, began)
+
+
+def _run(prepared: PreparedRun, home: BenchHome, show_progress: bool, began: float) -> RunOutcome:
+    request = prepared.request
     store = ResultStore(home.database)
     store.check_writable()
     warn_if_dirty()
