@@ -306,3 +306,28 @@ def test_evaluation_starts_every_test_episode_from_its_own_initial_state(tmp_pat
     starts.clear()
     make_env(2, 0).reset()  # training's first episodes, the same run seed
     assert len(starts) == 2 and not set(starts) & evaluated
+
+
+def test_the_collector_acts_with_the_weights_of_each_update(tmp_path, monkeypatch):
+    """After every batch's update the collector's policy is refreshed (a copy on another device would
+    otherwise collect with the first weights): at the end its parameters are the trained ones."""
+    from torchrl.collectors import Collector
+
+    refreshed: list[bool] = []
+    update = Collector.update_policy_weights_
+
+    def recording(self, *args, **kwargs):
+        update(self, *args, **kwargs)
+        trained = dict(self._trained.named_parameters())
+        refreshed.append(all(torch.equal(p, trained[n]) for n, p in self.policy.named_parameters()))
+
+    monkeypatch.setattr(Collector, "update_policy_weights_", recording)
+    init = Collector.__init__
+
+    def keeping(self, env, policy, *args, **kwargs):
+        init(self, env, policy, *args, **kwargs)
+        self._trained = policy
+
+    monkeypatch.setattr(Collector, "__init__", keeping)
+    train_ppo(state_env_factory(ENV), PPO, 0, tmp_path, lambda *args: None)
+    assert refreshed == [True] * 6, "one refresh per batch (480 frames: 6 batches of 2 envs x 10 steps x 4)"

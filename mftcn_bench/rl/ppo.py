@@ -190,17 +190,19 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
     nets = PolicyNetworks(env, config, trunk).to(device)
     loss, advantage = ppo_objectives(nets, config, pixels=trunk is not None)
     optimizer = torch.optim.Adam(loss.parameters(), lr=config.lr)
-    batch_steps = config.num_envs * config.episodes_per_batch * agent_steps
-    frames_per_batch = batch_steps * suite.config.action_repeat
-    total_batches = max(1, math.ceil(config.frames / frames_per_batch))
+    # Two units: agent steps (what the policy acts on; torchrl's collector counts these as its "frames")
+    # and physics frames (agent steps x action repeat; what `config.frames` and the curves count).
+    agent_steps_per_batch = config.num_envs * config.episodes_per_batch * agent_steps
+    physics_frames_per_batch = agent_steps_per_batch * suite.config.action_repeat
+    total_batches = max(1, math.ceil(config.frames / physics_frames_per_batch))
 
     state, rng = TrainState(), None
     workdir.mkdir(parents=True, exist_ok=True)
     checkpoint = workdir / "ppo_checkpoint.pt"
     if checkpoint.exists():
         state, rng, cuda_rng = _load_checkpoint(checkpoint, nets, optimizer, device)
-    collector = Collector(env, nets.policy, frames_per_batch=batch_steps,
-                          total_frames=(total_batches - state.batch) * batch_steps, reset_at_each_iter=True,
+    collector = Collector(env, nets.policy, frames_per_batch=agent_steps_per_batch,
+                          total_frames=(total_batches - state.batch) * agent_steps_per_batch, reset_at_each_iter=True,
                           auto_register_policy_transforms=False, env_device="cpu", policy_device=device,
                           storing_device=device)
     if rng is not None:  # after the collector's construction, which may draw from it
@@ -220,8 +222,11 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
         # was collected with; the next batch is collected with the new ones.
         if nets.normalizer is not None:
             nets.normalizer.update(batch.get("observation"))
+        # The collector may act with a copy of the policy (another device); it collects the next batch
+        # with the weights (and observation statistics) just learnt either way.
+        collector.update_policy_weights_()
         state.batch += 1
-        state.frames += frames_per_batch
+        state.frames += physics_frames_per_batch
         state.wall_s = time.monotonic() - began
         state.curve_frames.append(float(state.frames))
         state.curve_wall_s.append(state.wall_s)
