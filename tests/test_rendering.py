@@ -66,7 +66,8 @@ def test_a_cuda_device_renders_on_the_egl_device_that_drives_it(monkeypatch):
 
     assert rendering.egl_device_of_cuda(0, (broken, queries[1])) is None
     monkeypatch.setenv("MUJOCO_GL", "egl")
-    monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID", raising=False)
+    monkeypatch.setenv("MUJOCO_EGL_DEVICE_ID", "unset")  # recorded, so the value follow_device sets is undone
+    monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID")
     monkeypatch.setattr(rendering, "_egl_device_queries", lambda: queries)
     rendering.follow_device("cuda:1")
     assert rendering.os.environ["MUJOCO_EGL_DEVICE_ID"] == "1"
