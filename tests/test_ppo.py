@@ -331,3 +331,27 @@ def test_the_collector_acts_with_the_weights_of_each_update(tmp_path, monkeypatc
     monkeypatch.setattr(Collector, "__init__", keeping)
     train_ppo(state_env_factory(ENV), PPO, 0, tmp_path, lambda *args: None)
     assert refreshed == [True] * 6, "one refresh per batch (480 frames: 6 batches of 2 envs x 10 steps x 4)"
+
+
+def test_evaluation_closes_its_environments(monkeypatch):
+    """Test episodes run on environments of their own, closed after (each rendering one holds an EGL context)."""
+    from mftcn_bench.rl.observation import observed_env
+    from mftcn_bench.rl.observers import StateObserver
+    from mftcn_bench.rl.ppo import PolicyNetworks
+    from mftcn_bench.rl.suite_env import SuiteBatchEnv
+
+    closed: list[int] = []
+    close = SuiteBatchEnv.close
+
+    def counting(self, **kwargs):
+        closed.append(self.num_envs)
+        close(self, **kwargs)
+
+    monkeypatch.setattr(SuiteBatchEnv, "close", counting)
+
+    def make_env(num_envs: int, seed: int):
+        return observed_env(ENV, num_envs, seed, StateObserver(), 5, False)
+
+    nets = PolicyNetworks(make_env(2, 0), PPO, None)
+    evaluate_policy(make_env, nets, episodes=2, num_envs=3, seed=0)
+    assert closed == [3]

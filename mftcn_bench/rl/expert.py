@@ -33,7 +33,9 @@ def expert_key(env: SuiteConfig, ppo: PPOConfig, seed: int) -> str:
 
 def state_env_factory(env_config: SuiteConfig):
     """Environments whose observation is the simulator state (nothing rendered)."""
-    simulator_dim = SuiteBatchEnv(env_config, 1, 0).observation_spec["state"].shape[-1]
+    sizing = SuiteBatchEnv(env_config, 1, 0)
+    simulator_dim = sizing.observation_spec["state"].shape[-1]
+    sizing.close()
     state_dim = int(StateObserver().push(None, np.ones(1, bool), np.zeros((1, simulator_dim))).shape[1])
 
     def make_env(num_envs: int, seed: int) -> TransformedEnv:
@@ -72,7 +74,9 @@ class ExpertPolicy:
     def __init__(self, path: Path, env_config: SuiteConfig, ppo: PPOConfig) -> None:
         from torchrl.envs import ExplorationType, set_exploration_type
 
-        self._nets = PolicyNetworks(state_env_factory(env_config)(1, 0), ppo, None)
+        env = state_env_factory(env_config)(1, 0)
+        self._nets = PolicyNetworks(env, ppo, None)
+        env.close()
         try:
             self._nets.load_state_dict(torch.load(path, weights_only=True, map_location="cpu")["nets"])
         except Exception as exc:  # noqa: BLE001 - an unreadable expert gets one line

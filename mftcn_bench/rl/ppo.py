@@ -297,9 +297,12 @@ def evaluate_policy(make_env: EnvFactory, nets: PolicyNetworks, episodes: int,
     eval_env = make_env(num_envs, seed + 1_000_003)
     steps = suite_env_of(eval_env).config.agent_steps
     returns: list[float] = []
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        while len(returns) < episodes:
-            rollout = eval_env.rollout(steps, nets.policy, break_when_any_done=False,
-                                       auto_cast_to_device=device is not None and device.type != "cpu")
-            returns.extend(rollout.get(("next", "reward")).sum(dim=(1, 2)).double().tolist())
+    try:
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            while len(returns) < episodes:
+                rollout = eval_env.rollout(steps, nets.policy, break_when_any_done=False,
+                                           auto_cast_to_device=device is not None and device.type != "cpu")
+                returns.extend(rollout.get(("next", "reward")).sum(dim=(1, 2)).double().tolist())
+    finally:
+        eval_env.close()
     return np.asarray(returns[:episodes])

@@ -182,6 +182,13 @@ class SuiteBatchEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         """Instances are seeded at construction (from the run's seed); torchrl's seeding is not used."""
 
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        """Free every instance's MuJoCo data and rendering contexts (an EGL context each, when rendering)."""
+        if not self.is_closed:
+            for env in self._envs:
+                env.physics.free()
+        super().close(raise_if_closed=raise_if_closed)
+
 
 EnvFactory = Callable[[int, int], EnvBase]  # (num_envs, seed) -> environment (a SuiteBatchEnv, transformed)
 
