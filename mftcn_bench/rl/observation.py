@@ -129,6 +129,11 @@ class RawClip(Transform):
         self.clip = clip
         self._window = ClipRing(clip.frames, clip.stride, num_envs)
 
+    @property
+    def lookback(self) -> int:
+        """Frames the clip spans (the clip rule's, `data.clips`)."""
+        return self._window.lookback
+
     def _push(self, frames: np.ndarray, start: bool) -> None:
         self._window.push(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)), np.full(len(frames), start))
 
@@ -176,9 +181,9 @@ def observed_env(config: SuiteConfig, num_envs: int, seed: int, observer: Observ
         if readout is not None:
             raise SpecError("a readout maps an encoder's embedding; an encoder trained with the policy "
                             "(pixels-cnn) gives the policy raw clips")
-        lookback = (pixel_clip.frames - 1) * pixel_clip.stride + 1
-        env = SuiteBatchEnv(config, num_envs, seed, stream_frames(config, lookback), renders=True)
-        return TransformedEnv(env, Compose(RawClip(pixel_clip, num_envs), ExcludeTransform(*_stream_keys(env))))
+        raw = RawClip(pixel_clip, num_envs)
+        env = SuiteBatchEnv(config, num_envs, seed, stream_frames(config, raw.lookback), renders=True)
+        return TransformedEnv(env, Compose(raw, ExcludeTransform(*_stream_keys(env))))
     renders = observer_uses_pixels
     env = SuiteBatchEnv(config, num_envs, seed, stream_frames(config, lookback if renders else 1), renders)
     transforms: list[Transform] = [EncoderEmbedding(observer, embedding_dim, renders, config.embedding_difference)]
