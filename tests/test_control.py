@@ -20,7 +20,7 @@ def control_home(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("task", ["swingup", "swingup-agent-rate", "swingup-moving", "cheetah"])
+@pytest.mark.parametrize("task", ["swingup", "swingup-physics-rate", "swingup-moving", "cheetah"])
 @pytest.mark.parametrize("encoder", ENCODERS)
 def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encoder, capsys):
     code = main(["run", "--encoder", encoder, "--task", task, "--preset", "smoke", "--no-progress",
@@ -46,7 +46,7 @@ def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encod
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("task", ["swingup-difference", "swingup-agent-rate-difference", "swingup-probe-state"])
+@pytest.mark.parametrize("task", ["swingup-difference", "swingup-physics-rate-difference", "swingup-probe-state"])
 def test_smoke_run_of_a_ppo_limit_analysis(control_home, task, capsys):
     """The PPO-limit variants run mftcn5 end to end; the probe-state one stores its readout's test R^2."""
     code = main(["run", "--encoder", "mftcn5", "--task", task, "--preset", "smoke", "--no-progress",
@@ -70,10 +70,10 @@ def _cli(args: list[str], home) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.slow
-def test_a_probe_run_then_a_swingup_run_share_one_dataset_and_one_fit_and_print_no_glfw_line(tmp_path):
+def test_an_agent_rate_probe_run_then_a_swingup_run_share_one_dataset_and_one_fit_and_print_no_glfw_line(tmp_path):
     """With MUJOCO_GL unset (a new user's shell), the probe and the control path choose the same GL backend
     before MuJoCo is first imported: no GLFW warning, one data set, one fit of the shared encoder."""
-    probe = _cli(["run", "--encoder", "mftcn1", "--task", "cartpole-probe", "--preset", "smoke"], tmp_path)
+    probe = _cli(["run", "--encoder", "mftcn1", "--task", "cartpole-probe-agent-rate", "--preset", "smoke"], tmp_path)
     control = _cli(["run", "--encoder", "mftcn1", "--task", "swingup", "--preset", "smoke"], tmp_path)
     assert probe.returncode == 0 and control.returncode == 0, probe.stderr + control.stderr
     assert "GLFW" not in probe.stderr + control.stderr

@@ -53,6 +53,19 @@ def test_same_results_same_bytes_whatever_the_order(tmp_path):
     assert "[cartpole-probe](cartpole-probe.md)" in index and "true-state: 0.0020 ± 0.0014" in index
 
 
+def test_a_board_whose_task_has_no_runs_left_is_removed_and_other_folders_are_left_alone(tmp_path):
+    boards, elsewhere = tmp_path / "boards", tmp_path / "notes"
+    write_boards(records(), boards)
+    (boards / "renamed-task.md").write_text("# renamed-task\n")  # a board of a task since renamed
+    write_boards(records(), boards)
+    assert sorted(p.name for p in boards.iterdir()) == ["README.md", "cartpole-probe.md"]
+    elsewhere.mkdir()
+    (elsewhere / "README.md").write_text("# My notes\n")
+    (elsewhere / "plan.md").write_text("mine\n")
+    write_boards(records(), elsewhere)  # a folder whose index is not ours: nothing of the user's is removed
+    assert (elsewhere / "plan.md").read_text() == "mine\n"
+
+
 def test_iqm_column_from_three_seeds_and_tasks_without_a_board_are_named():
     runs = [make_record("pve", "cartpole-probe", s, {"average": v}, config=probe_config("pve"))
             for s, v in enumerate((1.0, 2.0, 9.0))]

@@ -110,8 +110,11 @@ def test_tasks_share_the_named_dataset():
     from mftcn_bench.core import registry
 
     tables = {name: registry.get("tasks", name).spec.tables["dataset"]
-              for name in ("cartpole-probe", "swingup", "swingup-160", "swingup-moving")}
-    assert tables["cartpole-probe"] == tables["swingup"] and tables["swingup-160"] == tables["swingup-moving"]
+              for name in ("cartpole-probe", "cartpole-probe-agent-rate", "swingup", "swingup-physics-rate",
+                           "swingup-160", "swingup-moving")}
+    assert tables["cartpole-probe-agent-rate"] == tables["swingup"] != tables["cartpole-probe"]
+    assert tables["cartpole-probe"] == tables["swingup-physics-rate"]
+    assert tables["swingup-160"] == tables["swingup-moving"]
     assert {k: v for k, v in tables["swingup-160"].items() if k not in ("height", "width")} == \
         {k: v for k, v in tables["swingup"].items() if k not in ("height", "width")}
 

@@ -349,7 +349,7 @@ def _collect(collectors: Mapping[str, tuple[Any, int]], sizes: Sizes) -> dict[st
             collector.shutdown()
 
 
-STREAMS = {"agent-rate": "swingup-agent-rate", "physics-rate": "swingup"}  # stream -> the swing-up task on it
+STREAMS = {"agent-rate": "swingup", "physics-rate": "swingup-physics-rate"}  # stream -> the swing-up task on it
 
 
 def bench_ppo_pixels(sizes: Sizes) -> list[BenchRow]:
