@@ -263,7 +263,7 @@ def test_a_checkpoint_without_its_completion_marker_is_fitted_again(tmp_path):
     workdir.mkdir()
     (workdir / "model.pt").write_bytes(b"half")  # the kill came during save
     encoder = Recording()
-    first = _fit_or_load(encoder, spec, None, workdir, False, False)
+    first = _fit_or_load(encoder, spec, None, workdir, False)
     assert first["fitted"] and encoder.fits == 1 and (workdir / "fit.json").exists()
-    again = _fit_or_load(encoder, spec, None, workdir, False, False)
+    again = _fit_or_load(encoder, spec, None, workdir, False)
     assert again["reused"] and encoder.fits == 1 and encoder.loads == 1

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import warnings
 from collections.abc import Iterable
+from dataclasses import replace
 
 import numpy as np
 from sklearn.exceptions import ConvergenceWarning
@@ -82,7 +83,8 @@ def main() -> None:
     if args.random_episodes < 0:
         parser.error(f"--random-episodes must be >= 0, got {args.random_episodes}")
 
-    prepared = prepare(RunRequest(args.encoder, args.task, args.preset, args.seed))
+    # This probe reads the task's data whatever the encoder (a run of true state on swing-up reads none).
+    prepared = replace(prepare(RunRequest(args.encoder, args.task, args.preset, args.seed)), reads_data=True)
     home = BenchHome.resolve()
     dataset = prepare_dataset(prepared, home, show_progress=False)
     randomised = random_action_collector(prepared) if args.random_episodes else None

@@ -147,15 +147,26 @@ def check_dataset_config(config: Mapping[str, Any]) -> None:
             raise DataError(f"dataset {config.get('name')!r}: {key} must be an integer >= 1, got {value!r}")
 
 
+def dataset_root(datasets_dir: Path, config: Mapping[str, Any], collector: Collector) -> Path:
+    """Where the dataset for `config` lives (collected or not) under `datasets_dir`."""
+    return datasets_dir / f"{config['name']}-{dataset_id(config, collector)}"
+
+
+def find_dataset(datasets_dir: Path, config: Mapping[str, Any], collector: Collector) -> MultiViewDataset | None:
+    """The dataset for `config` if it has been collected to the end, else None (nothing is collected)."""
+    root = dataset_root(datasets_dir, config, collector)
+    return MultiViewDataset(root) if (root / "manifest.json").exists() else None
+
+
 def ensure_dataset(
     datasets_dir: Path, config: Mapping[str, Any], collector: Collector, *, show_progress: bool = True
 ) -> MultiViewDataset:
     """The dataset for `config`, collected (or finished, after an interruption) if needed."""
     check_dataset_config(config)
-    ident = dataset_id(config, collector)
-    root = datasets_dir / f"{config['name']}-{ident}"
-    if (root / "manifest.json").exists():
-        return MultiViewDataset(root)
+    found = find_dataset(datasets_dir, config, collector)
+    if found is not None:
+        return found
+    ident, root = dataset_id(config, collector), dataset_root(datasets_dir, config, collector)
     with exclusive_lock(datasets_dir / f".{root.name}.lock"):
         if (root / "manifest.json").exists():  # another process finished it while we waited
             return MultiViewDataset(root)

@@ -19,7 +19,7 @@ from typing import Any
 from mftcn_bench.core.errors import BenchError, SpecError
 from mftcn_bench.core.fileio import atomic_write_bytes
 from mftcn_bench.core.home import BenchHome
-from mftcn_bench.data.dataset import MultiViewDataset, dataset_id
+from mftcn_bench.data.dataset import find_dataset
 from mftcn_bench.orchestration.executors import Executor, check_executor_args, make_executor
 from mftcn_bench.orchestration.jobs import JobKind, JobResult, JobSpec
 from mftcn_bench.results.store import ResultStore, RunRecord
@@ -86,12 +86,6 @@ def parse_seeds(text: str) -> tuple[int, ...]:
     return tuple(dict.fromkeys(seeds))
 
 
-def _local_fingerprint(prepared: PreparedRun, home: BenchHome) -> str | None:
-    config = prepared.task.dataset_config
-    root = home.datasets / f"{config['name']}-{dataset_id(config, prepared.task.collector)}"
-    return MultiViewDataset(root).fingerprint if (root / "manifest.json").exists() else None
-
-
 class Sweep:
     """A validated sweep: `plan()` builds prerequisites and finds reusable runs, `run()` does the rest."""
 
@@ -102,9 +96,9 @@ class Sweep:
         if request.threads < 1:
             raise SpecError(f"--threads must be >= 1, got {request.threads}")
         self.request, self.home, self.echo = request, home, echo
-        self.prepared: list[PreparedRun] = [
+        self.prepared: list[PreparedRun] = [  # the runs' plans; the workers build their own encoders
             prepare(RunRequest(e, t, request.preset, s, request.overrides, device=request.device,
-                               deterministic=request.deterministic))
+                               deterministic=request.deterministic)).without_encoder()
             for e in request.encoders for t in request.tasks for s in request.seeds
         ]
         self.jobs = [SweepJob(p.request.encoder, p.request.task, p.request.seed, p.preset) for p in self.prepared]
@@ -170,14 +164,17 @@ class Sweep:
 
     def _run(self, executor: Executor) -> None:
         # 1. datasets: one job per distinct dataset config (reusing what the driver's home already has)
-        fingerprints: dict[int, str] = {}
+        fingerprints: dict[int, str | None] = {}
         by_dataset: dict[str, list[int]] = {}
         for i, p in enumerate(self.prepared):
-            local = _local_fingerprint(p, self.home) if self.worker_home else None
-            if local:
-                fingerprints[i] = local
+            local = find_dataset(self.home.datasets, p.task.dataset_config, p.task.collector) \
+                if self.worker_home and p.reads_data else None
+            if not p.reads_data:  # nothing to collect (`PreparedRun.reads_data`)
+                fingerprints[i] = None
+            elif local is not None:
+                fingerprints[i] = local.fingerprint
             else:
-                by_dataset.setdefault(dataset_id(p.task.dataset_config, p.task.collector), []).append(i)
+                by_dataset.setdefault(p.dataset_key, []).append(i)
         for key, result in self._phase(executor, "dataset", by_dataset).items():
             for i in by_dataset[key]:
                 if result.ok and result.fingerprint:

@@ -6,8 +6,11 @@ spec, preset values, overrides), preset name, seed, the dataset's fingerprint, t
 the code of the encoder, the task and the runner (a plugin's distribution, version and source); an
 encoder's checkpoint key covers its resolved spec, the dataset fingerprint, the seed and the encoder's
 code, so tasks that share a dataset share the trained encoder and nothing else is ever served from a cache.
-`--force` computes a run again: an equal result replaces the stored one, a different one (nondeterminism)
-is stored under its own id and named as a rerun, so one id never stands for two results.
+`--force` computes a run again, its encoder fitted afresh in the run's own folder (the shared checkpoint
+stays for the runs that load it): an equal result leaves the stored one, a different one (nondeterminism)
+is stored under its own id and named as a rerun, so one id never stands for two results. A run that reads
+no data (an online task and an encoder that fits nothing, `PreparedRun.reads_data`) collects none. Two
+processes asked for the same run hold a lock on its id: one computes, the other then finds the result.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import shutil
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -29,13 +32,13 @@ from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.core.home import BenchHome
 from mftcn_bench.core.provenance import canonical_json, content_hash, versions, warn_if_dirty
 from mftcn_bench.core.specs import EncoderSpec, encoder_spec_from_config, resolve_config
-from mftcn_bench.data.dataset import MultiViewDataset, check_dataset_config, ensure_dataset
+from mftcn_bench.data.dataset import MultiViewDataset, check_dataset_config, dataset_id, ensure_dataset
 from mftcn_bench.encoders.base import Encoder, FeatureCacheUser, FitBudget, MultiViewTrainer
 from mftcn_bench.encoders.bases import FrozenBase
 from mftcn_bench.encoders.feature_cache import ensure_feature_cache
 from mftcn_bench.results.store import ResultStore, RunRecord
 from mftcn_bench.sim.rendering import follow_device
-from mftcn_bench.tasks.base import NeedsArtifacts, ShowsProgress, Task
+from mftcn_bench.tasks.base import NeedsArtifacts, OnlineTask, ShowsProgress, Task
 
 
 @dataclass(frozen=True)
@@ -62,7 +65,9 @@ class RunOutcome:
 
 @dataclass(frozen=True)
 class PreparedRun:
-    """A request resolved against the registry and specs, with its task built."""
+    """The plan of one run: the request resolved against the registry and specs, its task built, and what
+    the run will need (a dataset or none, a fit or none), learnt from the untrained encoder built once here.
+    `run` and the sweep's phases (`orchestration.sweep`) both work from it."""
 
     request: RunRequest
     preset: str
@@ -74,10 +79,22 @@ class PreparedRun:
     placement: Placement = CPU  # the device the run computes on, resolved in `prepare`
     base: Mapping[str, Any] | None = None  # that encoder's frozen base, weights' checksum included (None: no
     # frozen base, or a task that names no frame size, so no encoder was built in `prepare`)
+    reads_data: bool = True  # False: an `OnlineTask` and an encoder that fits nothing, so nothing is collected
+    untrained: list[Encoder] = field(default_factory=list, compare=False, repr=False)  # handed to the first
+    # `build_encoder`, so that the encoder (and its base's weights) is constructed once per run
+
+    def without_encoder(self) -> PreparedRun:
+        """The plan without the untrained encoder it holds (a sweep keeps many plans, not their weights)."""
+        return replace(self, untrained=[])
+
+    @property
+    def dataset_key(self) -> str:
+        """The identity of the task's dataset, collected or not (`data.dataset.dataset_id`)."""
+        return dataset_id(self.task.dataset_config, self.task.collector)
 
 
-def run_id_of(prepared: PreparedRun, dataset_fingerprint: str) -> str:
-    """The id of `prepared` on the dataset with `dataset_fingerprint`."""
+def run_id_of(prepared: PreparedRun, dataset_fingerprint: str | None) -> str:
+    """The id of `prepared` on the dataset with `dataset_fingerprint` (None: a run that reads no data)."""
     return identity.run_id(prepared.config, prepared.preset, prepared.request.seed, dataset_fingerprint,
                            prepared.code, prepared.placement.identity(), prepared.base)
 
@@ -108,22 +125,28 @@ def prepare(request: RunRequest) -> PreparedRun:
     if isinstance(task, DevicePlaced):
         task.to_device(placement.torch_device)
     dataset_config = task.dataset_config
-    needs_fit, base = True, None
+    untrained = None
     if isinstance(dataset_config, Mapping):  # sizes that cannot work are refused before collecting anything
         check_dataset_config(dataset_config)
-        needs_fit, base = _check_encoder(encoder_entry, config["encoder"], request.seed, dataset_config)
+        untrained = _check_encoder(encoder_entry, config["encoder"], request.seed, dataset_config)
         length = dataset_config.get("episode_length")
         if isinstance(length, int) and spec.lookback > length:
             raise SpecError(f"encoder {spec.name!r} has a lookback of {spec.lookback} frames ({spec.frames} at "
                             f"stride {spec.stride}), longer than the task's {length}-frame episodes; use an "
                             f"encoder with lookback <= {length} or set task.dataset.episode_length >= "
                             f"{spec.lookback}")
+    needs_fit = untrained is None or bool(untrained.needs_fit)
+    base = None if untrained is None else _base_identity(untrained)
     return PreparedRun(request, preset, config, encoder_entry, task, identity.run_code(encoder_class, task),
-                       needs_fit, placement, base)
+                       needs_fit, placement, base, reads_data=needs_fit or not isinstance(task, OnlineTask),
+                       untrained=[] if untrained is None else [untrained])
 
 
-def prepare_dataset(prepared: PreparedRun, home: BenchHome, show_progress: bool = True) -> MultiViewDataset:
-    """The task's dataset, after whatever the task needs to collect it (an expert policy for demos)."""
+def prepare_dataset(prepared: PreparedRun, home: BenchHome, show_progress: bool = True) -> MultiViewDataset | None:
+    """The task's dataset, after whatever the task needs to collect it (an expert policy for demos); None,
+    with nothing collected, for a run that reads no data (`PreparedRun.reads_data`)."""
+    if not prepared.reads_data:
+        return None
     if isinstance(prepared.task, NeedsArtifacts):
         prepared.task.prepare_artifacts(home, show_progress)
     return ensure_dataset(home.datasets, prepared.task.dataset_config, prepared.task.collector,
@@ -157,6 +180,11 @@ def frozen_base_of(encoder: Encoder) -> FrozenBase | None:
     return encoder.frozen_base() if isinstance(encoder, FeatureCacheUser) else None
 
 
+def _base_identity(encoder: Encoder) -> dict[str, Any] | None:
+    base = frozen_base_of(encoder)
+    return None if base is None else base.identity()
+
+
 def attach_feature_cache(encoder: Encoder, dataset: MultiViewDataset, home: BenchHome,
                          show_progress: bool = True, placement: Placement = CPU) -> dict[str, Any] | None:
     """Build (or find) the per-frame feature cache of the encoder's frozen base on `dataset` (the base runs
@@ -183,21 +211,20 @@ def construct_encoder(entry: registry.Entry, encoder_config: Mapping[str, Any], 
 
 
 def _check_encoder(entry: registry.Entry, encoder_config: Mapping[str, Any], seed: int,
-                   dataset_config: Mapping[str, Any]) -> tuple[bool, dict[str, Any] | None]:
+                   dataset_config: Mapping[str, Any]) -> Encoder | None:
     """Refuse, before any data is collected, an encoder that trains on more camera views than the task's
     dataset has (constructing it also refuses a model table it cannot build, or weights it cannot load);
-    returns its `needs_fit` and its frozen base's identity (None: it has none)."""
+    returns the untrained encoder (None: the dataset names no frame size to build it for)."""
     cameras = list(dataset_config.get("cameras", ()))
     shape = (dataset_config.get("height"), dataset_config.get("width"))
     if not all(isinstance(x, int) for x in shape):
-        return True, None
+        return None
     encoder = construct_encoder(entry, encoder_config, seed, shape)
-    base = frozen_base_of(encoder)
     if isinstance(encoder, MultiViewTrainer) and encoder.training_views > len(cameras):
         raise SpecError(f"encoder {entry.name!r} trains on {encoder.training_views} camera views of each "
                         f"moment; the task's dataset has {len(cameras)} ({', '.join(cameras) or 'none'}): give "
                         f"task.dataset.cameras at least {encoder.training_views} cameras")
-    return bool(encoder.needs_fit), None if base is None else base.identity()
+    return encoder
 
 
 def place_encoder(encoder: Encoder, placement: Placement) -> Placement:
@@ -209,19 +236,31 @@ def place_encoder(encoder: Encoder, placement: Placement) -> Placement:
     return CPU
 
 
-def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
-                  show_progress: bool = True) -> tuple[Encoder, dict[str, Any]]:
+def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset | None, home: BenchHome,
+                  show_progress: bool = True, fit_dir: Path | None = None) -> tuple[Encoder, dict[str, Any]]:
     """The encoder for this run, placed on the run's device, fitted on `dataset` or loaded from the shared
-    checkpoint."""
+    checkpoint (with no dataset, a run that reads no data: the encoder as constructed). With `fit_dir` (a
+    folder of the caller's own, `--force`) the fit happens there and the shared checkpoint is left alone.
+    The plan's untrained encoder is used by the first call; a later one constructs its own."""
     spec = encoder_spec_from_config(prepared.encoder_entry.description, prepared.config["encoder"])
-    encoder = construct_encoder(prepared.encoder_entry, prepared.config["encoder"], prepared.request.seed,
-                                dataset.image_shape)
+    if prepared.untrained:
+        encoder = prepared.untrained.pop()
+    else:
+        shape = dataset.image_shape if dataset is not None else (prepared.task.dataset_config["height"],
+                                                                 prepared.task.dataset_config["width"])
+        encoder = construct_encoder(prepared.encoder_entry, prepared.config["encoder"], prepared.request.seed,
+                                    shape)
     placement = place_encoder(encoder, prepared.placement)
     placed = {"device": placement.device}
     base = frozen_base_of(encoder)
     if prepared.base is not None and (base is None or base.identity() != prepared.base):  # the id holds it
         raise BenchError(f"encoder {spec.name!r}: its base's weights changed on disk since the run was "
                          f"prepared; run it again")
+
+    if dataset is None:
+        if encoder.needs_fit:
+            raise BenchError(f"encoder {spec.name!r} needs a fit, and this run was planned without data")
+        return encoder, {"fitted": False, "reused": False, **placed}
 
     def attach() -> dict[str, Any] | None:
         return attach_feature_cache(encoder, dataset, home, show_progress, placement)
@@ -230,24 +269,24 @@ def build_encoder(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchH
         cache = attach()
         return encoder, {"fitted": False, "reused": False, **placed,
                          **({} if cache is None else {"feature_cache": cache})}
-    workdir = encoder_workdir(prepared, dataset, home, placement)
-    with exclusive_lock(home.encoders / f".{workdir.name}.lock"):  # concurrent runs fit it once
-        # A stored checkpoint is loaded (and refused if it cannot be) before the cache is built.
-        fit = _fit_or_load(encoder, spec, dataset, workdir, prepared.request.force, show_progress,
-                           before_fit=attach)
+    if fit_dir is not None:
+        fit = _fit_or_load(encoder, spec, dataset, fit_dir, show_progress, before_fit=attach)
+    else:
+        workdir = encoder_workdir(prepared, dataset, home, placement)
+        with exclusive_lock(home.encoders / f".{workdir.name}.lock"):  # concurrent runs fit it once
+            # A stored checkpoint is loaded (and refused if it cannot be) before the cache is built.
+            fit = _fit_or_load(encoder, spec, dataset, workdir, show_progress, before_fit=attach)
     cache = attach()  # found, if the fit built it
     return encoder, {**fit, **placed, **({} if cache is None else {"feature_cache": cache})}
 
 
-def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset, workdir: Path, force: bool,
+def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset, workdir: Path,
                  show_progress: bool, before_fit: Callable[[], object] = lambda: None) -> dict[str, Any]:
     """Load the checkpoint in `workdir`, or fit (resuming a killed fit, after `before_fit`) and save it.
 
     A fit is finished when `fit.json` exists: it is written atomically after `save` returned, so a save cut
     off by a kill (a plugin's `save` need not be atomic) is never taken for a finished checkpoint."""
     model_path, fit_file = workdir / "model.pt", workdir / "fit.json"
-    if force and workdir.exists():
-        shutil.rmtree(workdir)
     if fit_file.exists():
         encoder.load(model_path)
         trained = json.loads(fit_file.read_text())
@@ -287,21 +326,24 @@ def run(request: RunRequest, home: BenchHome, show_progress: bool = True) -> Run
 
 
 def _run(prepared: PreparedRun, home: BenchHome, show_progress: bool, began: float) -> RunOutcome:
-    request = prepared.request
     store = ResultStore(home.database)
     store.check_writable()
     warn_if_dirty()
     dataset = prepare_dataset(prepared, home, show_progress)
     after_data = time.monotonic()
-    run_id = run_id_of(prepared, dataset.fingerprint)
+    run_id = run_id_of(prepared, None if dataset is None else dataset.fingerprint)
+    # Two processes asked for one run share `runs/<id>`: the second waits here, then finds the result stored.
+    with exclusive_lock(home.runs / f".{run_id}.lock"):
+        return _run_once(prepared, home, show_progress, began, dataset, after_data, run_id, store)
+
+
+def _run_once(prepared: PreparedRun, home: BenchHome, show_progress: bool, began: float,
+              dataset: MultiViewDataset | None, after_data: float, run_id: str, store: ResultStore) -> RunOutcome:
+    request = prepared.request
     existing = store.get(run_id)
     if existing is not None and not request.force:
         return RunOutcome(existing, True, prepared.task.table(existing.metrics),
                           existing.config.get("notes", []))
-    encoder, fit = build_encoder(prepared, dataset, home, show_progress)
-    after_fit = time.monotonic()
-    placement_notes = [] if fit["device"] == prepared.placement.device else [
-        f"encoder {request.encoder!r} has no to_device: it ran on the CPU, the task on {prepared.placement.device}"]
     # A forced rerun computes from scratch in a folder of its own; a first run keeps its folder, so a
     # killed evaluation resumes from its checkpoints there.
     run_dir = home.runs / (f".{run_id}.rerun" if existing is not None else run_id)
@@ -309,14 +351,24 @@ def _run(prepared: PreparedRun, home: BenchHome, show_progress: bool, began: flo
         shutil.rmtree(run_dir, ignore_errors=True)
     run_dir.mkdir(parents=True, exist_ok=True)
     try:
+        # `--force` fits the encoder again in the run's own folder: the shared checkpoint, which other tasks'
+        # runs load (and may be loading now), is never removed or replaced.
+        encoder, fit = build_encoder(prepared, dataset, home, show_progress,
+                                     fit_dir=run_dir / "encoder" if request.force else None)
+        after_fit = time.monotonic()
         if isinstance(prepared.task, ShowsProgress):
             prepared.task.show_progress(show_progress)
-        result = prepared.task.evaluate(encoder, dataset, run_dir)
+        if dataset is None and isinstance(prepared.task, OnlineTask):  # only such a run reads no data
+            result = prepared.task.evaluate_online(encoder, run_dir)
+        else:
+            result = prepared.task.evaluate(encoder, dataset, run_dir)
     except BaseException:
         if existing is not None or not any(run_dir.iterdir()):  # nothing to resume from: leave no folder behind
             shutil.rmtree(run_dir, ignore_errors=True)
         raise
     done = time.monotonic()
+    placement_notes = [] if fit["device"] == prepared.placement.device else [
+        f"encoder {request.encoder!r} has no to_device: it ran on the CPU, the task on {prepared.placement.device}"]
     if "train" in result.curves:  # the learning curve beside the result (matplotlib only when needed)
         from mftcn_bench.results.figure import plot_run_curve
 
@@ -331,12 +383,15 @@ def _run(prepared: PreparedRun, home: BenchHome, show_progress: bool, began: flo
         warnings.warn(f"--force: run {run_id} gave other metrics this time (not deterministic on this machine?); "
                       f"the stored result stays, the new one is run {record_id}", RerunWarning, stacklevel=2)
     final_dir = home.runs / record_id
+    if "checkpoint" in fit and request.force:  # the forced fit moves with the run's folder
+        fit = {**fit, "checkpoint": str(final_dir / "encoder" / Path(fit["checkpoint"]).name)}
     record = RunRecord(
         run_id=record_id, encoder=request.encoder, task=request.task, preset=prepared.preset,
-        seed=request.seed, dataset_id=dataset.fingerprint,
+        seed=request.seed, dataset_id=None if dataset is None else dataset.fingerprint,
         config={**prepared.config, "preset": prepared.preset, "seed": request.seed,
                 "encoder_info": asdict(encoder.info), "code": prepared.code.as_dict(), "fit": fit,
-                "notes": [*result.notes, *placement_notes], "dataset_path": str(dataset.root),
+                "notes": [*result.notes, *placement_notes],
+                "dataset_path": None if dataset is None else str(dataset.root),
                 "device": prepared.placement.record(),
                 **({"rerun_of": run_id} if record_id != run_id else {})},
         versions=versions(), metrics=result.metrics,

@@ -31,7 +31,7 @@ class TaskResult:
 @runtime_checkable
 class Task(Protocol):
     """Constructed as `cls(config, seed)` from the resolved `task` table. Optional capabilities:
-    `NeedsArtifacts`, `ShowsProgress`, `LabelledTask`."""
+    `OnlineTask`, `NeedsArtifacts`, `ShowsProgress`, `LabelledTask`."""
 
     @property
     def dataset_config(self) -> Mapping[str, Any]: ...
@@ -47,6 +47,15 @@ class Task(Protocol):
     def table(self, metrics: Mapping[str, Any]) -> list[dict[str, Any]]:
         """Rows of the printed result table."""
         ...
+
+
+@runtime_checkable
+class OnlineTask(Protocol):
+    """A task that measures the encoder in the simulator (PPO) and reads its dataset only to fit the
+    encoder: with an encoder that fits nothing (true state, random state, a frozen base alone, pixels-cnn)
+    the runner collects no data and calls `evaluate_online`."""
+
+    def evaluate_online(self, encoder: Encoder, workdir: Path) -> TaskResult: ...
 
 
 @runtime_checkable

@@ -14,7 +14,8 @@ trained by the PPO losses together with the policy (the environment emits raw cl
 swingup-probe-state (`ProbeStateControlTask`) is an analysis of what limits PPO on an embedding: the
 policy sees the cartpole state that the cartpole-probe's MLP, fitted on the task's dataset, predicts from
 [e_t, e_t - e_{t-1}], so its return bounds what the embedding's information about the state allows once
-the mapping to state is given rather than learnt by PPO.
+the mapping to state is given rather than learnt by PPO. It reads its dataset itself, so unlike the other
+control tasks it is no `tasks.base.OnlineTask`.
 """
 
 from __future__ import annotations
@@ -65,8 +66,9 @@ def _table(cls, task: str, name: str, table: Mapping[str, Any]):
     return parse_table(cls, f"task {task!r}", name, table)
 
 
-class ControlTask:
-    """PPO on the frozen embedding of one camera; metrics: return mean and std over test episodes."""
+class PPOTask:
+    """What the control tasks share: the environment and PPO settings of the spec, PPO on the (read-out)
+    embedding of one camera, and the test episodes; metrics: return mean and std over them."""
 
     def __init__(self, config: Mapping[str, Any], seed: int) -> None:
         self.config, self.seed = config, seed
@@ -121,9 +123,6 @@ class ControlTask:
         trunk = ClipTrunk(encoder.net, info.embedding_dim) if joint else None
         return make_env, trunk
 
-    def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path) -> TaskResult:
-        return self._train_and_test(encoder, workdir)
-
     def _train_and_test(self, encoder: Encoder, workdir: Path, readout: Readout | None = None) -> TaskResult:
         """PPO on the embedding (mapped by `readout` when given), then the test episodes."""
         from tqdm import tqdm
@@ -160,6 +159,16 @@ class ControlTask:
                  "test episodes": int(metrics["episodes"]), "training frames": int(metrics["frames"])}]
 
 
+class ControlTask(PPOTask):
+    """PPO on the frozen embedding of one camera. The dataset only trains the encoder (`OnlineTask`)."""
+
+    def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path) -> TaskResult:
+        return self.evaluate_online(encoder, workdir)
+
+    def evaluate_online(self, encoder: Encoder, workdir: Path) -> TaskResult:
+        return self._train_and_test(encoder, workdir)
+
+
 @dataclass(frozen=True)
 class ProbeReadout:
     """The fitted probe as a `Readout`: [e_t, e_t - e_{t-1}] -> the predicted state in TARGETS order, the
@@ -172,7 +181,7 @@ class ProbeReadout:
         return self.regressor.predict(observation)
 
 
-class ProbeStateControlTask(ControlTask):
+class ProbeStateControlTask(PPOTask):
     """PPO on the cartpole state that the probe (`[probe]`, cartpole-probe's MLP) predicts from the
     embedding; the probe is fitted on the train split of the task's dataset before PPO and its R^2 on the
     test split is stored with the return."""
