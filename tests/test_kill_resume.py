@@ -191,6 +191,29 @@ def test_killed_sweep_resumes_and_keeps_finished_runs(tmp_path):
     assert {r.run_id: r.created_at for r in records if r.run_id in stored} == stored  # kept, not redone
 
 
+def test_a_killed_queue_continues_from_its_name_and_exports_every_record(tmp_path):
+    """`sweep --queue NAME --export DIR` killed (driver and workers) mid-grid: `sweep status` shows what
+    finished and what is left; `sweep --queue NAME` alone continues the recorded grid, redoes nothing that
+    finished, and every record ends up in DIR."""
+    home, export = tmp_path / "home", tmp_path / "exported"
+    args = ["sweep", "--encoders", "random-state", "--tasks", "cartpole-probe", "--seeds", "0-3", "--workers", "1",
+            *SMALL, "--set", "task.probe.epochs=40", "--set", "task.probe.hidden=[64, 64]", "--queue", "grid",
+            "--export", str(export)]
+
+    kill_when(home, args, lambda: len(list(export.glob("*.json"))) >= 1, timeout=240, group=True)
+    stored = {r.run_id: r.created_at for r in ResultStore(home / "results.sqlite").query()}
+    assert 1 <= len(stored) < 4 and {p.stem for p in export.glob("*.json")} <= set(stored)
+    status = cli(home, "sweep", "status", "--queue", "grid").stdout
+    assert f"{len(stored)} done, 0 running, {4 - len(stored)} left, 0 failed" in status, status
+
+    out = cli(home, "sweep", "--queue", "grid").stdout
+    assert f"{len(stored)} reused" in out and "0 failed" in out
+    records = ResultStore(home / "results.sqlite").query()
+    assert len(records) == 4 and {r.run_id: r.created_at for r in records if r.run_id in stored} == stored
+    assert {p.stem for p in export.glob("*.json")} == {r.run_id for r in records}
+    assert "4 done, 0 running, 0 left, 0 failed; nothing left to run" in cli(home, "sweep", "status").stdout
+
+
 # ------------------------------------------------------------------------------------------- concurrency
 
 # Collects with the synthetic collector (the test is about locks, not pixels), logging every episode it

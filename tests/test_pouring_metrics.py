@@ -1,13 +1,25 @@
-"""Pouring metrics against brute-force numpy, and the pouring task on a synthetic labelled dataset."""
+"""Pouring metrics against brute-force numpy and scikit-learn, and the pouring task on a synthetic labelled
+dataset."""
+
+import warnings
 
 import numpy as np
 import pytest
+from sklearn.metrics import balanced_accuracy_score, pairwise_distances
 
 from mftcn_bench.core.errors import SpecError
 from mftcn_bench.data.dataset import ensure_dataset
-from mftcn_bench.data.pouring_labels import LABELS, TILT_CLASSES, class_balance, labels_from_state, tilt_class
+from mftcn_bench.data.pouring_labels import (
+    LABELS,
+    MOTION,
+    STATIC,
+    TILT_CLASSES,
+    class_balance,
+    labels_from_state,
+    tilt_class,
+)
 from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
-from mftcn_bench.encoders.base import EncoderInfo
+from mftcn_bench.encoders.base import EncoderInfo, embed_episode
 from mftcn_bench.tasks.pouring import PouringTask, summarize
 from mftcn_bench.tasks.pouring_metrics import (
     alignment_error,
@@ -40,6 +52,19 @@ def test_nearest_neighbours_and_errors_match_brute_force():
     errors = attribute_errors(x, labels, seq, ["a", "b", "c"])
     for j, name in enumerate("abc"):
         assert errors[name] == pytest.approx(brute_error(labels[:, j], labels[nearest, j]))
+
+
+def test_class_recall_error_is_one_minus_sklearns_balanced_accuracy():
+    """Mean recall over the classes among the (known) queries is sklearn's balanced accuracy, which also
+    keeps a class none of whose frames was matched (recall 0) and ignores classes only retrieved."""
+    rng = np.random.default_rng(2)
+    truth = rng.integers(-1, 4, size=200)
+    retrieved = np.where(truth == 3, 2, rng.integers(0, 5, size=200))  # class 3 never matched; 4 never true
+    known = truth != -1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # sklearn's note that class 4 is predicted but never true
+        expected = 1 - balanced_accuracy_score(truth[known], retrieved[known])
+    assert class_recall_error(truth, retrieved) == pytest.approx(expected)
 
 
 def test_class_without_a_match_counts_as_zero_recall_and_unknown_is_skipped():
@@ -86,11 +111,13 @@ def test_labels_from_state_thresholds():
 
 
 def labelled_collector(config, index):
-    """Synthetic frames; labels are a function of time (so sequences share label patterns)."""
+    """Synthetic frames; labels are a function of time (so sequences share label patterns). The last three
+    attributes are unbalanced (a third of the frames in class 1), where the mean recall over classes and the
+    plain accuracy differ."""
     arrays = synthetic_collector(config, index)
     length = len(arrays["state"])
     t = np.arange(length)
-    labels = np.stack([(t // (length // 4)) % 2, (t // (length // 4)) % 4] + [t % 2] * 7, axis=1)
+    labels = np.stack([(t // (length // 4)) % 2, (t // (length // 4)) % 4] + [t % 2] * 4 + [t % 3 == 0] * 3, axis=1)
     arrays["labels"] = labels.astype(np.int8)
     arrays["state"] = labels.astype(np.float64)  # the "true state" encoder sees the labels
     return arrays
@@ -109,6 +136,34 @@ class NoiseEncoder(StateEncoder):
         return np.random.default_rng(int(clips.frames.sum())).normal(size=(len(clips.frames), 9)).astype(np.float32)
 
 
+def metrics_by_sklearn(encoder, dataset) -> dict[str, float]:
+    """The pouring task's metrics recomputed from the encoder's embeddings of the test split with sklearn:
+    1-NN among the frames of the other sequences by a full distance matrix, 1 - balanced accuracy per
+    attribute, static and motion means, and the cross-view nearest neighbour's time offset; in percent."""
+    embeddings, labels, sequences, alignment = [], [], [], []
+    for episode in dataset.iter_episodes("test"):
+        views = [embed_episode(encoder, episode.frames[v], episode.state) for v in range(len(episode.frames))]
+        for view in views:
+            embeddings.append(view)
+            labels.append(episode.labels)
+            sequences.append(np.full(len(view), episode.index))
+        offsets = [np.abs(np.arange(len(views[i])) - pairwise_distances(views[i], views[j], metric="sqeuclidean")
+                          .argmin(1)) / len(views[i]) for i in range(len(views)) for j in range(i + 1, len(views))]
+        alignment.append(np.mean([o.mean() for o in offsets]))
+    x, labels, sequences = (np.concatenate(a) for a in (embeddings, labels, sequences))
+    distances = pairwise_distances(x.astype(np.float64), metric="sqeuclidean")
+    distances[sequences[:, None] == sequences[None, :]] = np.inf
+    retrieved = labels[distances.argmin(1)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # classes retrieved that no query has
+        errors = {name: 100 * (1 - balanced_accuracy_score(labels[:, j], retrieved[:, j]))
+                  for j, name in enumerate(LABELS)}
+    return {**{f"error_{k}": v for k, v in errors.items()},
+            "static_error": float(np.mean([errors[k] for k in STATIC])),
+            "motion_error": float(np.mean([errors[k] for k in MOTION])),
+            "alignment_error": 100 * float(np.mean(alignment))}
+
+
 def task_config(**dataset):
     config = {"name": "pouring", "evaluation": {"split": "test"},
               "dataset": {"source": "sim", "real_path": "", "cameras": ["fixed", "orbit"], "real": {}}}
@@ -123,7 +178,9 @@ def test_pouring_task_scores_a_perfect_encoder_zero_and_noise_high(tmp_path):
     good = task.evaluate(StateEncoder(), dataset).metrics
     bad = task.evaluate(NoiseEncoder(), dataset).metrics
     assert good["static_error"] == 0.0 and good["motion_error"] == 0.0
-    assert bad["static_error"] > 20 and bad["error_tilt_angle"] > 40
+    expected = metrics_by_sklearn(NoiseEncoder(), dataset)
+    assert {k: bad[k] for k in expected} == pytest.approx(expected)
+    assert bad["static_error"] > 0 and bad["alignment_error"] > 0  # noise is not a perfect encoder
     assert good["eval_sequences"] == 3 and good["eval_frames"] == 3 * 2 * 40
     assert set(summarize(dict.fromkeys(LABELS, 0.5), 0.1)) == {f"error_{k}" for k in LABELS} | {
         "static_error", "motion_error", "alignment_error"}

@@ -66,22 +66,27 @@ def test_truncated_checkpoint_is_refused_with_one_line(tmp_path):
 
 
 def test_expert_is_trained_once_and_acts_like_the_trained_policy(tmp_path):
-    path = ensure_expert(tmp_path, ENV, PPO, seed=1)
-    stamp = path.stat().st_mtime_ns
-    assert ensure_expert(tmp_path, ENV, PPO, seed=1) == path and path.stat().st_mtime_ns == stamp
-    expert = ExpertPolicy(path, ENV, PPO)
-    action = expert.act([0.1, 0.2, 0.0, -0.3])
-    assert action.shape == (1,) and -1.0 <= action[0] <= 1.0
-    assert expert.act([0.1, 0.2, 0.0, -0.3]).tolist() == action.tolist()  # the mean action, no sampling
-    # The same networks as PPO trains from this seed (training is deterministic), acting by their mean:
     import json
 
-    import numpy as np
     from tensordict import TensorDict
     from torchrl.envs import ExplorationType, set_exploration_type
 
     from mftcn_bench.rl.observers import StateObserver
 
+    path = ensure_expert(tmp_path, ENV, PPO, seed=1)
+    stamp = path.stat().st_mtime_ns
+    assert ensure_expert(tmp_path, ENV, PPO, seed=1) == path and path.stat().st_mtime_ns == stamp
+    expert = ExpertPolicy(path, ENV, PPO)
+    action = expert.act([0.1, 0.2, 0.0, -0.3])
+    assert expert.act([0.1, 0.2, 0.0, -0.3]).tolist() == action.tolist()
+    # The mean action: tanh of the policy head's loc for this state, computed here from the expert's own
+    # networks. A draw from the TanhNormal would be off by about its scale (near 1 after so little training).
+    observation = torch.from_numpy(StateObserver().push(None, np.ones(1, bool), np.array([[0.1, 0.2, 0.0, -0.3]])))
+    with torch.no_grad():
+        head = expert._nets.policy(TensorDict({"observation": observation}, batch_size=[1]))
+    assert action.shape == (1,)
+    assert np.allclose(action, torch.tanh(head.get("loc"))[0].double().numpy(), atol=1e-6)
+    # The same networks as PPO trains from this seed (training is deterministic), acting by their mean:
     nets, _ = train_ppo(state_env_factory(ENV), PPO, 1, tmp_path / "again", lambda *a: None)
     states = np.array([[0.1, 0.2, 0.0, -0.3], [-0.5, 3.0, 1.0, 2.0]])
     obs = torch.from_numpy(StateObserver().push(None, np.ones(2, bool), states))
@@ -92,6 +97,42 @@ def test_expert_is_trained_once_and_acts_like_the_trained_policy(tmp_path):
     summary = json.loads((path.parent / "expert.json").read_text())
     returns = evaluate_policy(state_env_factory(ENV), nets, PPO.eval_episodes, 2, 1)
     assert summary["return_mean"] == pytest.approx(float(returns.mean()))
+
+
+def test_the_policy_acts_by_tanh_of_its_loc_and_scores_its_draws_by_the_tanh_normal_density():
+    """What the test episodes and PPO's importance ratios rest on: the deterministic action is tanh(loc)
+    (not loc, nor loc clipped to [-1, 1]), and the log-probability stored with a drawn action a is the
+    change-of-variables density of the TanhNormal, log N(atanh a; loc, scale) - log(1 - a^2), summed over the
+    action's dimensions (a Normal's density without the Jacobian term would give other ratios)."""
+    from dataclasses import replace
+
+    from tensordict import TensorDict
+    from torchrl.envs import ExplorationType, set_exploration_type
+
+    from mftcn_bench.rl.observation import observed_env
+    from mftcn_bench.rl.observers import StateObserver
+    from mftcn_bench.rl.ppo import PolicyNetworks
+
+    torch.manual_seed(0)
+    env = observed_env(ENV, 2, 0, StateObserver(), 5, False)
+    # Full-size last-layer weights: locs of order 1, where tanh(loc), loc and clip(loc) tell apart.
+    nets = PolicyNetworks(env, replace(PPO, policy_init_scale=1.0), None)
+    env.close()
+    observations = TensorDict({"observation": 3 * torch.randn(256, 5)}, batch_size=[256])
+    with torch.no_grad():
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            mean = nets.policy(observations.clone())
+        with set_exploration_type(ExplorationType.RANDOM):
+            drawn = nets.policy(observations.clone())
+    loc, scale = mean.get("loc").double(), mean.get("scale").double()
+    assert loc.abs().max() > 0.5, "locs too small for tanh(loc) and loc to differ"
+    assert torch.allclose(mean.get("action").double(), torch.tanh(loc), atol=1e-6)
+    action = drawn.get("action").double()
+    # Away from saturation, where atanh of a float32 action recovers the drawn pre-tanh value.
+    kept = (action.abs() < 0.999).all(-1)
+    assert kept.float().mean() > 0.9
+    by_hand = (torch.distributions.Normal(loc, scale).log_prob(torch.atanh(action)) - torch.log1p(-action**2)).sum(-1)
+    assert torch.allclose(drawn.get("action_log_prob").double()[kept], by_hand[kept], atol=1e-3)
 
 
 def test_running_normalizer_matches_numpy_over_all_batches():

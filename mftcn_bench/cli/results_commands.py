@@ -6,7 +6,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 from tabulate import tabulate
@@ -32,9 +34,12 @@ def add_commands(commands: argparse._SubParsersAction, common: Callable[[argpars
                  parser_class: type[argparse.ArgumentParser],
                  device_options: Callable[[argparse.ArgumentParser], None]) -> None:
     """Add sweep, report, leaderboard, results and plot to `commands`."""
-    sweep = commands.add_parser("sweep", help="run a grid of encoders x tasks x seeds (local pool or Ray)")
-    sweep.add_argument("--encoders", required=True, help="comma-separated encoder names, e.g. mftcn1,mftcn5,pve")
-    sweep.add_argument("--tasks", required=True, help="comma-separated task names, e.g. cartpole-probe")
+    sweep = commands.add_parser("sweep", help="run a grid of encoders x tasks x seeds (local pool or Ray); "
+                                              "`sweep status` shows a queue's progress")
+    sweep.add_argument("action", nargs="?", choices=["status"], help="status: done / running / left of --queue "
+                                                                       "NAME (of every queue without it)")
+    sweep.add_argument("--encoders", help="comma-separated encoder names, e.g. mftcn1,mftcn5,pve")
+    sweep.add_argument("--tasks", help="comma-separated task names, e.g. cartpole-probe")
     sweep.add_argument("--seeds", default="0", help="seeds: 0-4, 0,2,5 or 0-2,7 (default 0)")
     sweep.add_argument("--preset", help="task preset for every task (default: each task's own)")
     sweep.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -42,8 +47,12 @@ def add_commands(commands: argparse._SubParsersAction, common: Callable[[argpars
     sweep.add_argument("--executor", choices=["local", "ray"], default="local")
     sweep.add_argument("--address", help="Ray cluster address (ray://host:10001 or host:6379); default: a "
                                          "local Ray instance")
-    sweep.add_argument("--workers", type=int, default=2, help="jobs at once (local processes, or CPUs of a "
-                                                              "local Ray instance; default 2)")
+    sweep.add_argument("--workers", type=int, help="jobs at once (local processes, or CPUs of a local Ray "
+                                                   "instance; default: one per core, or the queue's)")
+    sweep.add_argument("--queue", metavar="NAME", help="record the grid in the home as queue NAME; started "
+                                                       "again (`--queue NAME` alone), it continues the grid")
+    sweep.add_argument("--export", metavar="DIR", help="write each run's record to DIR/<run id>.json as it is "
+                                                       "stored (kept with the queue)")
     sweep.add_argument("--threads", type=int, default=1, help="torch/BLAS threads per job (default 1)")
     device_options(sweep)
     common(sweep)
@@ -88,21 +97,30 @@ def add_commands(commands: argparse._SubParsersAction, common: Callable[[argpars
 
 
 def cmd_sweep(args: argparse.Namespace) -> None:
-    from mftcn_bench.orchestration.sweep import (
-        SweepFailed,
-        SweepRequest,
-        parse_names,
-        parse_seeds,
-        run_sweep,
-        summary_rows,
-    )
+    from mftcn_bench.orchestration.queue import SweepQueue
+    from mftcn_bench.orchestration.sweep import Sweep, SweepFailed, SweepRequest, parse_names, parse_seeds, summary_rows
     from mftcn_bench.results.leaderboard import ranking
 
-    request = SweepRequest(parse_names(args.encoders, "encoders"), parse_names(args.tasks, "tasks"),
-                           parse_seeds(args.seeds), args.preset, tuple(parse_override(o) for o in args.overrides),
-                           args.executor, args.address, args.workers, args.threads,
-                           requested_device(args.device), args.deterministic)
-    jobs = run_sweep(request, BenchHome.resolve(args.home), echo=lambda line: print(line, flush=True))
+    home = BenchHome.resolve(args.home)
+    if args.action == "status":
+        return _sweep_status(home, args.queue)
+    export = Path(args.export) if args.export else None
+    if args.encoders is None and args.tasks is None and args.queue:  # continue a recorded grid
+        recorded = SweepQueue.open(home, args.queue).request
+        request = replace(recorded, workers=recorded.workers if args.workers is None else args.workers)
+    elif args.encoders is None or args.tasks is None:
+        raise SpecError("sweep needs --encoders and --tasks (or --queue NAME alone, to continue a recorded grid)")
+    else:
+        request = SweepRequest(parse_names(args.encoders, "encoders"), parse_names(args.tasks, "tasks"),
+                               parse_seeds(args.seeds), args.preset,
+                               tuple(parse_override(o) for o in args.overrides), args.executor, args.address,
+                               (os.cpu_count() or 1) if args.workers is None else args.workers, args.threads,
+                               requested_device(args.device),
+                               args.deterministic)
+    sweep = Sweep(request, home, echo=lambda line: print(line, flush=True))  # every name checked first
+    if args.queue:
+        sweep.listener = SweepQueue.open(home, args.queue, request, export)
+    jobs = sweep.run()
     metrics = {task: (r.metric if (r := ranking(task)) else None) for task in request.tasks}
     rows = summary_rows(jobs, metrics.get)
     print(tabulate([list(r.values()) for r in rows], headers=list(rows[0]), tablefmt="github",
@@ -112,6 +130,21 @@ def cmd_sweep(args: argparse.Namespace) -> None:
     if counts["failed"]:
         raise SweepFailed(f"{counts['failed']} of {len(jobs)} sweep jobs failed (see the table above); a rerun "
                           f"redoes only those")
+
+
+def _sweep_status(home: BenchHome, name: str | None) -> None:
+    from mftcn_bench.orchestration.queue import queue_status
+
+    names = [name] if name else sorted(p.stem for p in (home.root / "queues").glob("*.json"))
+    if not names:
+        print(f"no queues in {home.root / 'queues'} (`sweep ... --queue NAME` records one)")
+    for queue in names:
+        status = queue_status(home, queue)
+        print(f"queue {queue}:")
+        if status.rows:
+            print(tabulate([list(r.values()) for r in status.rows], headers=list(status.rows[0]),
+                           tablefmt="github", disable_numparse=True))
+        print(status.summary())
 
 
 def cmd_report(args: argparse.Namespace) -> None:

@@ -14,7 +14,7 @@ import json
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, Protocol
 
 from mftcn_bench.core.errors import BenchError, SpecError
 from mftcn_bench.core.fileio import atomic_write_bytes
@@ -62,6 +62,15 @@ class SweepJob:
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
+class SweepListener(Protocol):
+    """Told of each change of the jobs' states and of each record the driver stores (a queue keeps them in
+    the home and exports the records: `orchestration.queue`)."""
+
+    def jobs_changed(self, jobs: Sequence[SweepJob]) -> None: ...
+
+    def record_stored(self, record: RunRecord) -> None: ...
+
+
 def parse_names(text: str, what: str) -> tuple[str, ...]:
     names = tuple(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
     if not names:
@@ -89,13 +98,14 @@ def parse_seeds(text: str) -> tuple[int, ...]:
 class Sweep:
     """A validated sweep: `plan()` builds prerequisites and finds reusable runs, `run()` does the rest."""
 
-    def __init__(self, request: SweepRequest, home: BenchHome, echo: Callable[[str], None] = print) -> None:
+    def __init__(self, request: SweepRequest, home: BenchHome, echo: Callable[[str], None] = print,
+                 listener: SweepListener | None = None) -> None:
         check_executor_args(request.executor, request.workers, request.address)
         if not request.seeds:
             raise SpecError("--seeds needs at least one seed")
         if request.threads < 1:
             raise SpecError(f"--threads must be >= 1, got {request.threads}")
-        self.request, self.home, self.echo = request, home, echo
+        self.request, self.home, self.echo, self.listener = request, home, echo, listener
         self.prepared: list[PreparedRun] = [  # the runs' plans; the workers build their own encoders
             prepare(RunRequest(e, t, request.preset, s, request.overrides, device=request.device,
                                deterministic=request.deterministic)).without_encoder()
@@ -140,6 +150,10 @@ class Sweep:
     def _fail(self, index: int, error: str) -> None:
         self.jobs[index].status, self.jobs[index].error = "failed", error
 
+    def _changed(self) -> None:
+        if self.listener is not None:
+            self.listener.jobs_changed(self.jobs)
+
     def _store(self, record: RunRecord) -> None:
         """Write a worker's record into the driver's store and runs folder (if not there already)."""
         if self.store.get(record.run_id) is None:
@@ -151,6 +165,8 @@ class Sweep:
             run_dir.mkdir(parents=True, exist_ok=True)
             stored = self.store.get(record.run_id) or record
             atomic_write_bytes(run_dir / "result.json", json.dumps(asdict(stored), indent=1, sort_keys=True).encode())
+        if self.listener is not None:
+            self.listener.record_stored(self.store.get(record.run_id) or record)
 
     def run(self, executor: Executor | None = None) -> list[SweepJob]:
         own = executor is None
@@ -191,8 +207,11 @@ class Sweep:
             self.jobs[i].run_id = run_id
             if stored is not None:
                 self.jobs[i].status, self.jobs[i].metrics = "reused", stored.metrics
+                if self.listener is not None:
+                    self.listener.record_stored(stored)
             else:
                 todo.append(i)
+        self._changed()
         # 3. trained encoders: one job per distinct checkpoint (encoders that train nothing need none)
         by_encoder: dict[str, list[int]] = {}
         for i in todo:
@@ -203,6 +222,7 @@ class Sweep:
             if not result.ok:
                 for i in by_encoder[key]:
                     self._fail(i, f"encoder: {result.error}")
+        self._changed()
         # 4. the runs
         runs = [i for i in todo if self.jobs[i].status == "planned"]
         specs = [self._spec("run", self.prepared[i], n) for n, i in enumerate(runs)]
@@ -215,6 +235,7 @@ class Sweep:
                 job.run_id, job.metrics = result.record.run_id, result.record.metrics
             else:
                 self._fail(runs[k], result.error or "no result")
+            self._changed()
             self.echo(f"[run {n}/{len(specs)}] {job.encoder} on {job.task} seed {job.seed}: {job.status}"
                       + (f" ({job.error})" if job.error else f" ({job.seconds:.1f} s)"))
 
@@ -234,6 +255,6 @@ def summary_rows(jobs: Sequence[SweepJob], metric_of: Callable[[str], str | None
 
 
 def run_sweep(request: SweepRequest, home: BenchHome, echo: Callable[[str], None] = print,
-              executor: Executor | None = None) -> list[SweepJob]:
+              executor: Executor | None = None, listener: SweepListener | None = None) -> list[SweepJob]:
     """Validate, then run the sweep; returns every job with its status (failures do not raise)."""
-    return Sweep(request, home, echo).run(executor)
+    return Sweep(request, home, echo, listener).run(executor)

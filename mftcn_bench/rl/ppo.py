@@ -289,12 +289,15 @@ def _load_checkpoint(path: Path, nets: PolicyNetworks, optimizer: torch.optim.Op
                             f"with --force to train from the start") from None
 
 
+EVAL_SEED_OFFSET = 1_000_003  # the test environments' seed is the run's plus this: apart from training's seeds
+
+
 @torch.no_grad()
 def evaluate_policy(make_env: EnvFactory, nets: PolicyNetworks, episodes: int,
                     num_envs: int, seed: int, device: torch.device | None = None) -> np.ndarray:
     """Returns of `episodes` test episodes with the policy's deterministic (mean) action, on environments
     seeded apart from training; the policy runs on `device` (where `nets` are), the environments on the CPU."""
-    eval_env = make_env(num_envs, seed + 1_000_003)
+    eval_env = make_env(num_envs, seed + EVAL_SEED_OFFSET)
     steps = suite_env_of(eval_env).config.agent_steps
     returns: list[float] = []
     try:

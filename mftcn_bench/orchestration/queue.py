@@ -1,0 +1,174 @@
+"""A sweep's grid recorded in the home (`<home>/queues/<name>.json`), for long grids on one machine.
+
+`mftcn-bench sweep ... --queue NAME` writes the grid and each job's state there as the sweep goes, and
+exports each record as it is stored (`--export DIR`); started again after the process or the session was
+killed (`sweep --queue NAME`, the grid read back), the sweep skips finished runs and continues unfinished
+ones from their checkpoints (`run.runner`). `mftcn-bench sweep status --queue NAME` reads the file and the
+home: a job is done when the store holds its run id, running while a process holds the run's lock
+(`runs/.<id>.lock`), and its time left is estimated from the measured times of the queue's finished jobs.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from mftcn_bench.core.errors import SpecError
+from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
+from mftcn_bench.core.home import BenchHome
+from mftcn_bench.orchestration.sweep import SweepJob, SweepRequest
+from mftcn_bench.results.records_io import record_to_json
+from mftcn_bench.results.store import ResultStore, RunRecord
+
+_GRID_KEYS = ("encoders", "tasks", "seeds", "preset", "overrides", "device", "deterministic")  # what a grid is
+
+
+class QueueError(SpecError):
+    """A queue name that does not fit the request (another grid under that name, or no grid to continue)."""
+
+
+def queue_path(home: BenchHome, name: str) -> Path:
+    if not name or "/" in name or name.startswith("."):
+        raise QueueError(f"--queue {name!r}: a queue name is a plain file name (letters, digits, - and _)")
+    return home.root / "queues" / f"{name}.json"
+
+
+def _request_json(request: SweepRequest) -> dict[str, Any]:
+    return json.loads(json.dumps(asdict(request)))  # tuples as lists, as the file reads back
+
+
+def request_from_json(data: dict[str, Any]) -> SweepRequest:
+    return SweepRequest(tuple(data["encoders"]), tuple(data["tasks"]), tuple(data["seeds"]), data["preset"],
+                        tuple((k, v) for k, v in data["overrides"]), data["executor"], data["address"],
+                        int(data["workers"]), int(data["threads"]), data["device"], bool(data["deterministic"]))
+
+
+class SweepQueue:
+    """One named queue: its grid, export folder and the latest state of its jobs (a `SweepListener`)."""
+
+    def __init__(self, home: BenchHome, name: str, request: SweepRequest, export: Path | None) -> None:
+        self.home, self.name, self.request, self.export = home, name, request, export
+        self.path = queue_path(home, name)
+
+    @classmethod
+    def open(cls, home: BenchHome, name: str, request: SweepRequest | None = None,
+             export: Path | None = None) -> SweepQueue:
+        """The queue `name`: created with `request`, or read back (then `request`, if given, must be its
+        grid: the same encoders, tasks, seeds, preset, overrides and device)."""
+        path = queue_path(home, name)
+        if not path.exists():
+            if request is None:
+                raise QueueError(f"no queue {name!r} in {path.parent}; give --encoders and --tasks to start it")
+            queue = cls(home, name, request, export)
+            queue.jobs_changed([])
+            return queue
+        data = json.loads(path.read_text(encoding="utf-8"))
+        stored = request_from_json(data["request"])
+        if request is not None:
+            mine, theirs = _request_json(request), data["request"]
+            differs = [k for k in _GRID_KEYS if mine[k] != theirs[k]]
+            if differs:
+                raise QueueError(f"queue {name!r} holds another grid ({', '.join(differs)} differ); continue it "
+                                 f"with `sweep --queue {name}` alone, or start a new queue under another name")
+            stored = request  # the grid is the same; workers, threads and executor are this start's
+        recorded = data.get("export")
+        return cls(home, name, stored, export or (Path(recorded) if recorded else None))
+
+    def jobs_changed(self, jobs: Sequence[SweepJob]) -> None:
+        with exclusive_lock(self.path.with_suffix(".lock")):
+            data = {"name": self.name, "request": _request_json(self.request),
+                    "export": None if self.export is None else str(self.export.resolve()),
+                    "updated_at": datetime.now(UTC).isoformat(timespec="seconds"),
+                    "jobs": [asdict(job) for job in jobs]}
+            atomic_write_bytes(self.path, json.dumps(data, indent=1).encode())
+
+    def record_stored(self, record: RunRecord) -> None:
+        if self.export is not None:
+            self.export.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(self.export / f"{record.run_id}.json", record_to_json(record))
+
+
+def _running_since(lock: Path) -> float | None:
+    """When the process holding the run's lock took it (the lock file is opened, so touched, by it), or
+    None when no process holds it."""
+    if not lock.exists():
+        return None
+    with open(lock) as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return lock.stat().st_mtime
+        fcntl.flock(handle, fcntl.LOCK_UN)
+    return None
+
+
+@dataclass(frozen=True)
+class QueueStatus:
+    """What `sweep status` prints: one row per job, the counts, and the time left."""
+
+    rows: list[dict[str, Any]]
+    counts: dict[str, int]
+    left_s: float | None  # None: no finished job of the queue to estimate from
+    workers: int
+
+    def summary(self) -> str:
+        counts = ", ".join(f"{n} {state}" for state, n in self.counts.items())
+        if not self.counts["left"] and not self.counts["running"]:
+            return f"{counts}; nothing left to run"
+        if self.left_s is None:
+            return f"{counts}; no finished job yet to estimate the time left from"
+        hours, minutes = divmod(round(self.left_s / 60), 60)
+        return (f"{counts}; about {hours} h {minutes:02d} min left at {self.workers} job(s) at once "
+                f"(from the measured times of the finished jobs)")
+
+
+def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueStatus:
+    """The state of every job of the queue `name`, from its file, the store and the runs' locks."""
+    path = queue_path(home, name)
+    if not path.exists():
+        raise QueueError(f"no queue {name!r} in {path.parent}")
+    data = json.loads(path.read_text(encoding="utf-8"))
+    now = time.time() if now is None else now
+    store = ResultStore(home.database)
+    jobs = [SweepJob(**job) for job in data["jobs"]]
+    if not jobs:  # planned, not started: the grid as requested
+        request = request_from_json(data["request"])
+        jobs = [SweepJob(e, t, s, request.preset or "-") for e in request.encoders for t in request.tasks
+                for s in request.seeds]
+    states, measured, since = [], {}, {}
+    for job in jobs:
+        record = store.get(job.run_id) if job.run_id else None
+        started = _running_since(home.runs / f".{job.run_id}.lock") if job.run_id else None
+        if record is not None:
+            state = "done"
+            measured.setdefault(job.task, []).append(float(record.timings.get("total_s", job.seconds)))
+        elif started is not None:
+            state, since[id(job)] = "running", started
+        elif job.status == "failed":
+            state = "failed"
+        else:
+            state = "left"
+        states.append(state)
+    every = [s for times in measured.values() for s in times]
+    left_s = None
+    if every:
+        def expected(task: str) -> float:
+            times = measured.get(task, every)
+            return sum(times) / len(times)
+
+        work = sum(expected(j.task) for j, s in zip(jobs, states, strict=True) if s == "left")
+        work += sum(max(0.0, expected(j.task) - (now - since[id(j)]))
+                    for j, s in zip(jobs, states, strict=True) if s == "running")
+        left_s = work / max(1, int(data["request"]["workers"]))
+    rows = [{"encoder": j.encoder, "task": j.task, "seed": j.seed, "state": s, "run id": j.run_id or "-",
+             "running for": f"{(now - since[id(j)]) / 60:.0f} min" if s == "running" else "",
+             "error": (j.error or "") if s == "failed" else ""}
+            for j, s in zip(jobs, states, strict=True)]
+    counts = {state: states.count(state) for state in ("done", "running", "left", "failed")}
+    return QueueStatus(rows, counts, left_s, int(data["request"]["workers"]))

@@ -1,0 +1,64 @@
+"""A sweep's queue file: the grid it refuses to mix, and `sweep status` (done / running / left, time left)."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import replace
+
+import pytest
+
+from mftcn_bench.core.fileio import exclusive_lock
+from mftcn_bench.orchestration.queue import QueueError, SweepQueue, queue_status
+from mftcn_bench.orchestration.sweep import SweepJob, SweepRequest
+from tests.records import make_record
+
+GRID = SweepRequest(("a", "b"), ("t",), (0, 1), "quick", workers=2)
+
+
+def _jobs(*run_ids: str) -> list[SweepJob]:
+    return [SweepJob(e, "t", s, "quick", run_id=r) for (e, s), r in zip((("a", 0), ("a", 1), ("b", 0), ("b", 1)),
+                                                                        run_ids, strict=True)]
+
+
+def test_status_counts_done_running_left_and_estimates_the_time_left_from_finished_jobs(home):
+    from mftcn_bench.results.store import ResultStore
+
+    queue = SweepQueue.open(home, "grid", GRID)
+    queue.jobs_changed(_jobs("r0", "r1", "r2", "r3"))
+    store = ResultStore(home.database)
+    for run_id, seconds in (("r0", 100.0), ("r1", 300.0)):
+        store.put(replace(make_record("a", "t", 0, {"m": 1.0}), run_id=run_id, timings={"total_s": seconds}))
+    now = 1_000_000.0
+    lock = home.runs / ".r2.lock"
+    with exclusive_lock(lock):  # a process is running r2, started 50 s ago
+        os.utime(lock, (now - 50, now - 50))
+        status = queue_status(home, "grid", now=now)
+    assert status.counts == {"done": 2, "running": 1, "left": 1, "failed": 0}
+    assert [r["state"] for r in status.rows] == ["done", "done", "running", "left"]
+    # A job of task t takes 200 s (the mean of the finished): r2 has 150 s to go, r3 200 s, at 2 jobs at once.
+    assert status.left_s == pytest.approx((150 + 200) / 2)
+    assert "2 done, 1 running, 1 left, 0 failed; about 0 h 03 min left at 2 job(s) at once" in status.summary()
+    assert queue_status(home, "grid", now=now).counts["running"] == 0, "the lock was released"
+
+
+def test_without_a_finished_job_the_status_says_it_cannot_estimate(home):
+    SweepQueue.open(home, "grid", GRID)  # recorded, not yet planned: the grid as requested
+    status = queue_status(home, "grid")
+    assert status.counts == {"done": 0, "running": 0, "left": 4, "failed": 0} and status.left_s is None
+    assert "no finished job yet" in status.summary()
+
+
+def test_a_queue_keeps_its_grid_and_export_folder(home, tmp_path):
+    SweepQueue.open(home, "grid", GRID, tmp_path / "out")
+    again = SweepQueue.open(home, "grid")
+    assert again.request == GRID and again.export == (tmp_path / "out").resolve()
+    assert SweepQueue.open(home, "grid", replace(GRID, workers=5)).request.workers == 5
+    with pytest.raises(QueueError, match="holds another grid \\(seeds differ\\)"):
+        SweepQueue.open(home, "grid", SweepRequest(("a", "b"), ("t",), (0, 1, 2), "quick"))
+    with pytest.raises(QueueError, match="no queue 'other'"):
+        SweepQueue.open(home, "other")
+    with pytest.raises(QueueError, match="plain file name"):
+        SweepQueue.open(home, "../x", GRID)
+    data = json.loads((home.root / "queues" / "grid.json").read_text())
+    assert data["request"]["seeds"] == [0, 1] and data["export"] == str((tmp_path / "out").resolve())
