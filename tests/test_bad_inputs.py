@@ -315,6 +315,36 @@ def test_bad_device(capsys, tmp_path, monkeypatch, case):
     check_case(capsys, tmp_path, argv, *needles)
 
 
+QUEUE_CASES = {
+    "sweep without a grid": (["sweep"], ["sweep needs --encoders and --tasks", "--queue NAME alone"]),
+    "continuing a queue that does not exist": (["sweep", "--queue", "nope"], ["no queue 'nope'",
+                                                                             "give --encoders and --tasks"]),
+    "a queue name that is a path": (["sweep", "--encoders", "true-state", "--tasks", "swingup", "--queue", "../x"],
+                                    ["--queue '../x'", "a plain file name"]),
+    "status of a queue that does not exist": (["sweep", "status", "--queue", "nope"], ["no queue 'nope'"]),
+}
+
+
+@pytest.mark.parametrize("case", list(QUEUE_CASES))
+def test_bad_queue(capsys, tmp_path, case):
+    argv, needles = QUEUE_CASES[case]
+    check_case(capsys, tmp_path, [*argv, "--home", str(tmp_path / "home")], *needles)
+
+
+def test_another_grid_under_a_queues_name_is_refused_and_the_queue_kept(capsys, tmp_path):
+    from mftcn_bench.core.home import BenchHome
+    from mftcn_bench.orchestration.queue import SweepQueue
+    from mftcn_bench.orchestration.sweep import SweepRequest
+
+    home = BenchHome.resolve(tmp_path / "home")
+    SweepQueue.open(home, "grid", SweepRequest(("true-state",), ("swingup",), (0, 1), "smoke"))
+    kept = (home.root / "queues" / "grid.json").read_bytes()
+    fails(capsys, ["sweep", "--encoders", "true-state", "--tasks", "swingup", "--seeds", "0-2", "--preset", "smoke",
+                   "--queue", "grid", "--home", str(home.root)],
+          "queue 'grid' holds another grid (seeds differ)", "`sweep --queue grid` alone")
+    assert (home.root / "queues" / "grid.json").read_bytes() == kept and not home.database.exists()
+
+
 def test_bad_device_from_the_environment(capsys, tmp_path, monkeypatch):
     monkeypatch.setenv("MFTCN_BENCH_DEVICE", "cuda:x")
     check_case(capsys, tmp_path, ["run", *TINY_TASK], "unknown device 'cuda:x'")

@@ -117,6 +117,8 @@ def cmd_sweep(args: argparse.Namespace) -> None:
                                (os.cpu_count() or 1) if args.workers is None else args.workers, args.threads,
                                requested_device(args.device),
                                args.deterministic)
+    if args.queue:
+        SweepQueue.check(home, args.queue, request)
     sweep = Sweep(request, home, echo=lambda line: print(line, flush=True))  # every name checked first
     if args.queue:
         sweep.listener = SweepQueue.open(home, args.queue, request, export)

@@ -68,17 +68,23 @@ class SweepQueue:
             queue = cls(home, name, request, export)
             queue.jobs_changed([])
             return queue
+        cls.check(home, name, request)
         data = json.loads(path.read_text(encoding="utf-8"))
-        stored = request_from_json(data["request"])
-        if request is not None:
-            mine, theirs = _request_json(request), data["request"]
-            differs = [k for k in _GRID_KEYS if mine[k] != theirs[k]]
-            if differs:
-                raise QueueError(f"queue {name!r} holds another grid ({', '.join(differs)} differ); continue it "
-                                 f"with `sweep --queue {name}` alone, or start a new queue under another name")
-            stored = request  # the grid is the same; workers, threads and executor are this start's
+        stored = request_from_json(data["request"]) if request is None else request  # workers etc.: this start's
         recorded = data.get("export")
         return cls(home, name, stored, export or (Path(recorded) if recorded else None))
+
+    @staticmethod
+    def check(home: BenchHome, name: str, request: SweepRequest | None) -> None:
+        """Refuse, before any work, a name that is no plain file name or that holds another grid."""
+        path = queue_path(home, name)
+        if request is None or not path.exists():
+            return
+        theirs, mine = json.loads(path.read_text(encoding="utf-8"))["request"], _request_json(request)
+        differs = [k for k in _GRID_KEYS if mine[k] != theirs[k]]
+        if differs:
+            raise QueueError(f"queue {name!r} holds another grid ({', '.join(differs)} differ); continue it "
+                             f"with `sweep --queue {name}` alone, or start a new queue under another name")
 
     def jobs_changed(self, jobs: Sequence[SweepJob]) -> None:
         with exclusive_lock(self.path.with_suffix(".lock")):
