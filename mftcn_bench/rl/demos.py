@@ -1,8 +1,9 @@
 """Multi-view demonstration videos: an expert policy's episodes recorded from several cameras.
 
 Each episode starts from the suite's own random initial state (seeded by the dataset seed and the episode
-index) and follows the expert's mean action, held for the environment's action repeat. Every simulator
-step is rendered from all cameras, with its true state and the action applied.
+index) and follows the expert's mean action, held for the environment's action repeat. A frame is rendered
+from all cameras every `[dataset] action_repeat` simulator steps (the encoder's stream: 1, every step; the
+environment's action repeat, every agent step), with its true state and the action applied then.
 """
 
 from __future__ import annotations
@@ -49,18 +50,21 @@ class ExpertDemoCollector:
         renderer = MultiViewRenderer(physics, config["cameras"], int(config["height"]), int(config["width"]),
                                      RenderSettings.from_table(f"dataset {config['name']!r}", config["render"]))
         env.reset()
-        length, repeat = int(config["episode_length"]), self.env_config.action_repeat
+        length, every = int(config["episode_length"]), int(config["action_repeat"])  # frames; steps apart
+        repeat = self.env_config.action_repeat
         frames = np.empty((len(config["cameras"]), length, int(config["height"]), int(config["width"]), 3),
                           dtype=np.uint8)
         state_dim = physics_state(physics, config["domain"]).shape[0]
         state = np.empty((length, state_dim), dtype=np.float64)
         action = np.empty((length, int(env.action_spec().shape[0])), dtype=np.float32)
         current = np.zeros(action.shape[1])
-        for t in range(length):
-            frames[:, t] = renderer.render()
-            state[t] = physics_state(physics, config["domain"])
-            if t % repeat == 0:
-                current = self._expert.act(state[t])
-            action[t] = current
+        for step in range(length * every):
+            t, filmed = divmod(step, every)
+            if step % repeat == 0:
+                current = self._expert.act(physics_state(physics, config["domain"]))
+            if filmed == 0:
+                frames[:, t] = renderer.render()
+                state[t] = physics_state(physics, config["domain"])
+                action[t] = current
             env.step(current)
         return {"frames": frames, "state": state, "action": action}

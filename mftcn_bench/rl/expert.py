@@ -26,9 +26,14 @@ from mftcn_bench.rl.observers import StateObserver
 from mftcn_bench.rl.ppo import PolicyNetworks, PPOConfig, evaluate_policy, train_ppo
 from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig
 
+_FRAMES_ONLY = ("camera", "height", "width", "render", "frame_every")  # how frames are seen: an expert sees none
+
 
 def expert_key(env: SuiteConfig, ppo: PPOConfig, seed: int) -> str:
-    return identity.expert_key(asdict(env), asdict(ppo), seed)
+    """The expert's identity: its environment as the state sees it (not the frames' camera, size, render
+    settings or rate, so a change of how demonstrations are filmed keeps the expert), PPO settings, seed."""
+    stepped = {k: v for k, v in asdict(env).items() if k not in _FRAMES_ONLY}
+    return identity.expert_key(stepped, asdict(ppo), seed)
 
 
 def state_env_factory(env_config: SuiteConfig):

@@ -229,10 +229,6 @@ class ExpertDemoControlTask(ControlTask):
         self.expert_seed = int(config["dataset"]["seed"])
         self._expert_path: Path | None = None
 
-    def data_frame_every(self) -> int:
-        """The demonstrations record every physics step (`rl/demos.py`)."""
-        return 1
-
     @property
     def dataset_config(self) -> Mapping[str, Any]:
         # The expert's identity is part of the data's: another expert gives another dataset.
