@@ -20,7 +20,7 @@ from mftcn_bench.core.home import BenchHome
 from mftcn_bench.core.specs import parse_override
 
 REPORT_CHOICES = ["probe", "swingup", "cheetah", "pouring", "pouring-attributes", "swingup-limits", "probe-streams",
-                  "swingup-streams", "all"]
+                  "swingup-streams", "imitate", "all"]
 PLOT_CHOICES = ["curves", "probe-lookback", "pouring-lookback"]
 
 

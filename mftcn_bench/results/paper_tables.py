@@ -251,5 +251,25 @@ SWINGUP_STREAMS = PaperTable(
     other_runs=False,
 )
 
+# --- Not in the paper: behaviour cloning on the frozen embedding (issue 37) ---------------------------------
+_DEMONSTRATIONS = "task.bc.demonstrations"
+_IMITATE_ROWS = (("True state (BC's upper bound)", "true-state"), ("Random state (the floor)", "random-state"),
+                 ("Lite0 features (the frozen base alone)", "lite0-features"), ("PVE", "pve"), ("TCN", "tcn"),
+                 ("mfTCN1", "mftcn1"), ("mfTCN5", "mftcn5"))
+IMITATE = PaperTable(
+    name="imitate",
+    title="Behaviour cloning on the frozen embedding from a true-state PPO expert's demonstrations: episode return",
+    label_headers=("Domain", "Input to the clone"),
+    columns=(*_RETURN_COLUMNS, MetricColumn("fraction_of_expert", "Fraction of expert"),
+             MetricColumn("expert_return_mean", "Expert (same initial states)")),
+    rows=tuple(PaperRow((domain, label), encoder, task) for domain, task in
+               (("swing-up", "imitate-swingup"), ("cheetah", "imitate-cheetah")) for label, encoder in _IMITATE_ROWS),
+    note="The expert's row is the last column: each run stores the expert's return on its own test episodes' "
+         "initial states. Runs with another number of demonstrations (`--set task.bc.demonstrations=5`) are rows "
+         "of their own.",
+    decimals=2,
+    varied=(*VARIED, _DEMONSTRATIONS),
+)
+
 TABLES: dict[str, PaperTable] = {t.name: t for t in (PROBE, SWINGUP, CHEETAH, POURING, POURING_ATTRIBUTES,
-                                                     SWINGUP_LIMITS, PROBE_STREAMS, SWINGUP_STREAMS)}
+                                                     SWINGUP_LIMITS, PROBE_STREAMS, SWINGUP_STREAMS, IMITATE)}

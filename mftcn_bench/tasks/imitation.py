@@ -1,0 +1,331 @@
+"""Imitation (imitate-swingup, imitate-cheetah): behaviour cloning on the frozen embedding, from an expert's
+demonstrations, the cheap control readout of frozen-encoder suites (CortexBench, R3M, VIP, MVP).
+
+The expert is PPO on the true state (`[expert_ppo]`, trained once under the home's `experts/`). Its
+demonstrations (`[demos]`) are its episodes filmed by the policy's camera at the encoder's stream (the size,
+render settings and frame rate of the task's `[dataset]`), with the true state and the action of each frame;
+they are recorded once and keyed like any data set, so every encoder clones the same episodes. The task's
+`[dataset]` is the encoder's training data, the matching PPO task's, so a trained encoder is shared with it.
+
+The readout (`[bc]`): the embedding of each demonstration frame (with `[env] embedding_difference`,
+[e_t, e_t - e_{t-1}]), the actions the expert took there, and an MLP fitted to them by mean-squared error
+(the probe's sklearn MLP: standardised inputs, Adam) on the first `demonstrations` episodes for a fixed
+number of gradient steps, whatever their count, so that rows of 5, 25 and 100 demonstrations differ only in
+data. The clone then acts online in the harness's own environments (`observed_env`: the stream a PPO policy
+sees) for `eval_episodes` episodes seeded apart from the demonstrations; the expert acts from the same initial
+states (the same environment seed), so `fraction_of_expert` compares like with like.
+
+pixels-cnn is refused: its CNN is trained with a policy, and here there is none to train it with.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from sklearn.exceptions import DataConversionWarning
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import step_mdp
+
+from mftcn_bench.core.errors import DataError, SpecError
+from mftcn_bench.core.home import BenchHome
+from mftcn_bench.core.specs import parse_table
+from mftcn_bench.data.cartpole import collect_episode
+from mftcn_bench.data.dataset import Collector, MultiViewDataset, ensure_dataset
+from mftcn_bench.encoders.base import Encoder, embed_episode, trains_with_policy, uses_pixels
+from mftcn_bench.rl.demos import ExpertDemoCollector, StatePolicy
+from mftcn_bench.rl.expert import ExpertPolicy, ensure_expert, expert_key
+from mftcn_bench.rl.observation import observed_env
+from mftcn_bench.rl.observers import make_observer
+from mftcn_bench.rl.ppo import EVAL_SEED_OFFSET, PPOConfig
+from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig, suite_env_of
+from mftcn_bench.sim.rendering import RenderSettings
+from mftcn_bench.sim.suite_limits import check_dataset_fits, check_episode_fits
+from mftcn_bench.tasks.base import TaskResult
+from mftcn_bench.tasks.probe import ProbeConfig, fit_probe, probe_features
+
+
+@dataclass(frozen=True)
+class DemosConfig:
+    """The `[demos]` table: which expert episodes are recorded (the camera set, size and rate are the
+    encoder's data set's)."""
+
+    name: str
+    cameras: list[str]
+    episodes: int          # recorded for training: the most a run may clone from
+    test_episodes: int     # recorded and held out: the clone's action error on unseen demonstrations
+    episode_length: int    # frames
+    seed: int              # the demonstrations' initial states (apart from the encoder data's and the test's)
+    expert_seed: int       # the expert's PPO seed
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1 or self.test_episodes < 1 or self.episode_length < 1:
+            raise SpecError(f"task.demos: episodes, test_episodes and episode_length must be >= 1, got "
+                            f"{self.episodes}, {self.test_episodes} and {self.episode_length}")
+
+
+@dataclass(frozen=True)
+class BCConfig:
+    """The `[bc]` table: the clone's MLP, its training budget and its test."""
+
+    demonstrations: int    # the first this many recorded episodes are cloned
+    hidden: list[int] = field(default_factory=lambda: [256, 256])
+    lr: float = 0.001
+    steps: int = 3000      # Adam steps, whatever the number of demonstrations
+    batch_size: int = 256
+    eval_episodes: int = 20
+    eval_envs: int = 10    # environments stepped together in the test
+
+    def __post_init__(self) -> None:
+        rules = {"demonstrations": self.demonstrations >= 1, "steps": self.steps >= 1,
+                 "batch_size": self.batch_size >= 1, "eval_episodes": self.eval_episodes >= 1,
+                 "eval_envs": self.eval_envs >= 1, "lr": self.lr > 0,
+                 "hidden": bool(self.hidden) and all(h >= 1 for h in self.hidden)}
+        for key, ok in rules.items():
+            if not ok:
+                allowed = "a non-empty list of sizes >= 1" if key == "hidden" else "> 0" if key == "lr" else ">= 1"
+                raise SpecError(f"task.bc.{key} must be {allowed}, got {getattr(self, key)}")
+
+
+Act = Callable[[TensorDictBase], np.ndarray]  # an environment's step data -> actions [E, A]
+
+
+def rollout_returns(make_env: Callable[[], EnvBase], act: Act, episodes: int) -> np.ndarray:
+    """Returns of `episodes` whole episodes of the environments `make_env()` builds, acting by `act`.
+    Each reset starts every environment from its next initial state (`SuiteBatchEnv`), so two policies on
+    environments of one seed and size meet the same initial states in the same order."""
+    env = make_env()
+    steps = suite_env_of(env).config.agent_steps
+    returns: list[float] = []
+    try:
+        with torch.no_grad():
+            while len(returns) < episodes:
+                td, total = env.reset(), np.zeros(env.batch_size[0])
+                for _ in range(steps):
+                    td.set("action", torch.from_numpy(np.clip(act(td), -1.0, 1.0).astype(np.float32)))
+                    td = env.step(td)
+                    total += td.get(("next", "reward")).reshape(-1).double().numpy()
+                    td = step_mdp(td)
+                returns.extend(total.tolist())
+    finally:
+        env.close()
+    return np.asarray(returns[:episodes])
+
+
+def demo_rows(encoder: Encoder, dataset: MultiViewDataset, camera: str, split: str, count: int | None,
+              difference: bool, frames_per_step: int) -> tuple[np.ndarray, np.ndarray]:
+    """What the clone learns from: per agent step of the first `count` episodes of `split` (all when None),
+    the observation a rollout gives the policy (the embedding of `camera`'s clip, with `difference`
+    [e_t, e_t - e_{t-1}] over the stream) and the expert's action then. With several stream frames per
+    agent step the expert decided at every `frames_per_step`-th frame, where the rollout observes."""
+    view = dataset.cameras.index(camera)
+    xs, ys = [], []
+    for index in dataset.episodes(split)[:count]:
+        episode = dataset.load(index)
+        embeddings = embed_episode(encoder, episode.frames[view], episode.state)
+        observed = probe_features(embeddings) if difference else embeddings
+        xs.append(observed[::frames_per_step])
+        ys.append(episode.action[::frames_per_step])
+    return np.concatenate(xs), np.concatenate(ys).astype(np.float64)
+
+
+class ImitationTask:
+    """Behaviour cloning on a frozen embedding; the encoder trains on the task's `[dataset]` (random-action
+    videos, `collect_episode`, as the matching PPO task's), the clone on the expert's `[demos]`."""
+
+    def __init__(self, config: Mapping[str, Any], seed: int) -> None:
+        self.config, self.seed = config, seed
+        name, dataset = config["name"], config["dataset"]
+        self._bars = True
+        owner = f"task {name!r}"
+        seen_as = {"height": dataset["height"], "width": dataset["width"], "frame_every": int(dataset["action_repeat"]),
+                   "render": RenderSettings.from_table(owner, dataset["render"])}
+        self.env_config = parse_table(SuiteConfig, owner, "env", {**config["env"], **seen_as})
+        # The expert sees the state alone: how the clone's embedding is read (its difference) is not the expert's.
+        self.expert_env = replace(self.env_config, embedding_difference=False)
+        self.expert_ppo = parse_table(PPOConfig, owner, "expert_ppo", config["expert_ppo"])
+        self.demos = parse_table(DemosConfig, owner, "demos", config["demos"])
+        self.bc = parse_table(BCConfig, owner, "bc", config["bc"])
+        env = self.env_config
+        check_episode_fits(env.domain, env.task, env.episode_length, f"{owner}: [env] episode_length")
+        check_dataset_fits(env.domain, env.task, dataset, f"{owner}: [dataset]")
+        check_dataset_fits(env.domain, env.task, self.demos_config, f"{owner}: [demos]")
+        if env.camera not in self.demos.cameras:
+            raise SpecError(f"{owner}: [demos] cameras {self.demos.cameras} must hold the policy's camera, [env] "
+                            f"camera {env.camera!r}")
+        if self.bc.demonstrations > self.demos.episodes:
+            raise SpecError(f"{owner}: task.bc.demonstrations ({self.bc.demonstrations}) is more than the "
+                            f"demonstrations recorded, task.demos.episodes ({self.demos.episodes}); use at most "
+                            f"{self.demos.episodes} or record more")
+        self._expert_path: Path | None = None
+        self._demos: MultiViewDataset | None = None
+
+    # -- the encoder's data (the matching PPO task's, so its trained encoder is shared) --------------------
+    @property
+    def dataset_config(self) -> Mapping[str, Any]:
+        return self.config["dataset"]
+
+    @property
+    def collector(self) -> Collector:
+        return collect_episode
+
+    # -- the expert and its demonstrations --------------------------------------------------------------
+    @property
+    def demos_config(self) -> dict[str, Any]:
+        """The demonstrations' data set: the expert's episodes at the encoder data's size, render settings
+        and frame rate, keyed by the expert (another expert records other demonstrations)."""
+        data, demos = self.config["dataset"], self.demos
+        return {"name": demos.name, "domain": self.env_config.domain, "cameras": list(demos.cameras),
+                "height": data["height"], "width": data["width"], "train_episodes": demos.episodes,
+                "test_episodes": demos.test_episodes, "episode_length": demos.episode_length,
+                "action_repeat": data["action_repeat"], "seed": demos.seed, "render": data["render"],
+                "expert": expert_key(self.expert_env, self.expert_ppo, demos.expert_seed)}
+
+    def show_progress(self, enabled: bool) -> None:
+        """The expert's PPO bar and the demonstrations' collection bar (`tasks.base.ShowsProgress`)."""
+        self._bars = enabled
+
+    def check_encoder(self, encoder: Encoder) -> None:
+        """Refuse an encoder with nothing to clone from: one trained with a policy (`tasks.requirements`)."""
+        if trains_with_policy(encoder):
+            raise SpecError(f"task {self.config['name']!r} clones an expert on a frozen embedding; encoder "
+                            f"{encoder.info.name!r} is trained with a policy (nothing to clone from): use an "
+                            f"encoder that embeds frames, true-state or random-state")
+
+    def _ensure_expert(self, home: BenchHome, show_progress: bool) -> Path:
+        from tqdm import tqdm
+
+        if self._expert_path is not None:
+            return self._expert_path
+        env = self.expert_env
+        bar = tqdm(desc=f"expert {env.domain}-{env.task}", unit="batch", disable=None if show_progress else True,
+                   leave=False)
+
+        def progress(batch: int, total: int, stats: dict[str, float]) -> None:
+            bar.total, bar.n = total, batch
+            bar.set_postfix({k: f"{v:.3g}" for k, v in stats.items()}, refresh=False)
+            bar.refresh()
+
+        try:
+            self._expert_path = ensure_expert(home.experts, env, self.expert_ppo, self.demos.expert_seed, progress)
+        finally:
+            bar.close()
+        return self._expert_path
+
+    def expert_policy(self) -> StatePolicy:
+        """The expert's mean action for one simulator state (what the demonstrations recorded)."""
+        if self._expert_path is None:
+            raise RuntimeError("the expert must be trained (prepare_artifacts) before it acts")
+        return ExpertPolicy(self._expert_path, self.expert_env, self.expert_ppo)
+
+    def prepare_artifacts(self, home: BenchHome, show_progress: bool = True) -> None:
+        """Train (or find) the expert, then record (or find) its demonstrations (`tasks.base.NeedsArtifacts`)."""
+        self._ensure_expert(home, show_progress)
+        collector = ExpertDemoCollector(self._expert_path, self.expert_env, self.expert_ppo,
+                                        policy=self.expert_policy())
+        self._demos = ensure_dataset(home.datasets, self.demos_config, collector, show_progress=show_progress)
+
+    # -- the clone --------------------------------------------------------------------------------------
+    def _regressor_config(self, rows: int) -> ProbeConfig:
+        """The probe's MLP as the clone: `bc.steps` Adam steps as whole epochs over `rows` rows, plain action
+        MSE (targets not standardised), no early stopping (a fixed budget for every row of a table)."""
+        per_epoch = math.ceil(rows / min(self.bc.batch_size, rows))
+        return ProbeConfig(camera=self.env_config.camera, hidden=list(self.bc.hidden), lr=self.bc.lr,
+                           epochs=max(1, math.ceil(self.bc.steps / per_epoch)), batch_size=self.bc.batch_size,
+                           tol=0.0, early_stopping=False, validation_fraction=0.0, patience=1,
+                           standardize_targets=False)
+
+    def evaluate(self, encoder: Encoder, dataset: MultiViewDataset, workdir: Path) -> TaskResult:
+        self.check_encoder(encoder)
+        if self._demos is None:
+            raise RuntimeError("the demonstrations must be recorded (prepare_artifacts) before the clone learns")
+        recorded = len(self._demos.episodes("train"))
+        if self.bc.demonstrations > recorded:
+            raise DataError(f"task.bc.demonstrations ({self.bc.demonstrations}) is more than the {recorded} "
+                            f"demonstrations recorded in {self._demos.root}")
+        env, camera = self.env_config, self.env_config.camera
+        rows = {split: demo_rows(encoder, self._demos, camera, split,
+                                 self.bc.demonstrations if split == "train" else None,
+                                 env.embedding_difference, env.frames_per_step) for split in ("train", "test")}
+        x, y = rows["train"]
+        config = self._regressor_config(len(x))
+        with warnings.catch_warnings():  # one action column is sklearn's multi-output form, which it warns of
+            warnings.simplefilter("ignore", DataConversionWarning)
+            clone = fit_probe(config, self.seed, x, y, np.zeros(len(x), dtype=int))
+        train_mse = float(np.mean((clone.predict(x) - y) ** 2))
+        test_mse = float(np.mean((clone.predict(rows["test"][0]) - rows["test"][1]) ** 2))
+
+        n = min(self.bc.eval_envs, self.bc.eval_episodes)
+        test_seed = self.seed + EVAL_SEED_OFFSET  # apart from training's seeds, as PPO's test episodes
+        info = encoder.info
+
+        def clone_env() -> EnvBase:
+            return observed_env(env, n, test_seed, make_observer(encoder, n), info.embedding_dim, uses_pixels(encoder),
+                                lookback=info.lookback)
+
+        def clone_act(td: TensorDictBase) -> np.ndarray:
+            return clone.predict(td.get("observation").numpy().astype(np.float64))
+
+        expert = self.expert_policy()
+
+        def expert_act(td: TensorDictBase) -> np.ndarray:
+            return np.stack([expert.act(state) for state in td.get("state")[:, -1].numpy()])
+
+        returns = rollout_returns(clone_env, clone_act, self.bc.eval_episodes)
+        expert_returns = rollout_returns(lambda: SuiteBatchEnv(self.expert_env, n, test_seed), expert_act,
+                                         self.bc.eval_episodes)
+        expert_mean = float(expert_returns.mean())
+        metrics: dict[str, float | None] = {
+            "return_mean": float(returns.mean()), "return_std": float(returns.std(ddof=1)) if len(returns) > 1 else 0.0,
+            "expert_return_mean": expert_mean,
+            "expert_return_std": float(expert_returns.std(ddof=1)) if len(expert_returns) > 1 else 0.0,
+            "fraction_of_expert": float(returns.mean()) / expert_mean if expert_mean > 0 else None,
+            "demonstrations": float(self.bc.demonstrations), "episodes": float(len(returns)),
+            "bc_train_mse": train_mse, "bc_heldout_mse": test_mse, "bc_train_rows": float(len(x)),
+            "bc_epochs": float(clone.n_iter_)}
+        curves = {"test": {"episode": [float(i) for i in range(len(returns))], "return": returns.tolist(),
+                           "expert_return": expert_returns.tolist()}}
+        view = "[e_t, e_t - e_t-1]" if env.embedding_difference else "e_t"
+        notes = [f"behaviour cloning: an MLP {list(self.bc.hidden)} on {view} of camera {camera!r}, fitted to the "
+                 f"expert's actions in {self.bc.demonstrations} demonstrations ({len(x)} agent steps, "
+                 f"{clone.n_iter_} epochs, about {self.bc.steps} Adam steps); demonstrations data set "
+                 f"{self._demos.root.name} (fingerprint {self._demos.fingerprint[:12]})",
+                 f"test: {len(returns)} episodes of {env.episode_length} steps from initial states seeded apart "
+                 f"from the demonstrations; the expert from the same initial states: {expert_mean:.1f}"]
+        return TaskResult(metrics, notes, curves)
+
+    def table(self, metrics: Mapping[str, Any]) -> list[dict[str, Any]]:
+        return [{"return (mean)": metrics["return_mean"], "return (sample std, ddof=1)": metrics["return_std"],
+                 "expert return": metrics["expert_return_mean"], "fraction of expert": metrics["fraction_of_expert"],
+                 "demonstrations": int(metrics["demonstrations"]), "BC train MSE": metrics["bc_train_mse"],
+                 "BC held-out MSE": metrics.get("bc_heldout_mse")}]
+
+
+class ExpertDataImitationTask(ImitationTask):
+    """Imitation where the encoder, too, learns from the expert's demonstrations only (cheetah): the task's
+    `[dataset]` is the cheetah task's, recorded from the same expert, so the trained encoder is shared."""
+
+    def __init__(self, config: Mapping[str, Any], seed: int) -> None:
+        super().__init__(config, seed)
+        if int(config["dataset"]["seed"]) != self.demos.expert_seed:
+            raise SpecError(f"task {config['name']!r}: task.demos.expert_seed ({self.demos.expert_seed}) must be "
+                            f"the [dataset] seed ({config['dataset']['seed']}), the seed of the expert whose "
+                            f"episodes the encoder learns from")
+
+    @property
+    def dataset_config(self) -> Mapping[str, Any]:
+        # As `tasks.control.ExpertDemoControlTask`: the expert's identity is part of the data's.
+        return {**self.config["dataset"], "expert": expert_key(self.expert_env, self.expert_ppo,
+                                                                self.demos.expert_seed)}
+
+    @property
+    def collector(self) -> Collector:
+        # Before prepare_artifacts it has no expert: it keys the dataset, and refuses to collect.
+        return ExpertDemoCollector(self._expert_path, self.expert_env, self.expert_ppo)
