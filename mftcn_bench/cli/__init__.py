@@ -135,7 +135,6 @@ def cmd_run(args: argparse.Namespace) -> None:
     request = RunRequest(args.encoder, args.task, args.preset, args.seed,
                          tuple(parse_override(o) for o in args.overrides), args.force,
                          requested_device(args.device), args.deterministic)
-    _check_task_accepts(request)
     outcome = run(request, BenchHome.resolve(args.home), show_progress=not args.no_progress)
     record = outcome.record
     how = "reused stored result" if outcome.reused else f"finished in {record.timings['total_s']:.1f} s"
@@ -144,18 +143,6 @@ def cmd_run(args: argparse.Namespace) -> None:
     _print_table(outcome.table)
     for note in outcome.notes:
         print(note)
-
-
-def _check_task_accepts(request) -> None:
-    """A task's requirements of its encoder (`tasks.requirements`), before the run does any work. Only a
-    task that has some is planned twice (the runner, part of every run's identity, stays as it is)."""
-    from mftcn_bench.core import registry
-    from mftcn_bench.run.runner import prepare
-    from mftcn_bench.tasks.requirements import EncoderRequirements, check_task_accepts
-
-    if issubclass(registry.get("tasks", request.task).load(), EncoderRequirements):
-        prepared = prepare(request)
-        check_task_accepts(prepared.task, prepared.untrained)
 
 
 def cmd_check(args: argparse.Namespace) -> None:

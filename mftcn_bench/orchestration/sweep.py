@@ -24,7 +24,6 @@ from mftcn_bench.orchestration.executors import Executor, check_executor_args, m
 from mftcn_bench.orchestration.jobs import JobKind, JobResult, JobSpec
 from mftcn_bench.results.store import ResultStore, RunRecord
 from mftcn_bench.run.runner import PreparedRun, RunRequest, encoder_key_of, prepare, run_id_of
-from mftcn_bench.tasks.requirements import check_task_accepts
 
 
 class SweepFailed(BenchError):
@@ -96,12 +95,6 @@ def parse_seeds(text: str) -> tuple[int, ...]:
     return tuple(dict.fromkeys(seeds))
 
 
-def _accepted(prepared: PreparedRun) -> PreparedRun:
-    """The plan, once its task accepts its encoder (`tasks.requirements`): refused before any work."""
-    check_task_accepts(prepared.task, prepared.untrained)
-    return prepared
-
-
 class Sweep:
     """A validated sweep: `plan()` builds prerequisites and finds reusable runs, `run()` does the rest."""
 
@@ -114,8 +107,8 @@ class Sweep:
             raise SpecError(f"--threads must be >= 1, got {request.threads}")
         self.request, self.home, self.echo, self.listener = request, home, echo, listener
         self.prepared: list[PreparedRun] = [  # the runs' plans; the workers build their own encoders
-            _accepted(prepare(RunRequest(e, t, request.preset, s, request.overrides, device=request.device,
-                                         deterministic=request.deterministic))).without_encoder()
+            prepare(RunRequest(e, t, request.preset, s, request.overrides, device=request.device,
+                               deterministic=request.deterministic)).without_encoder()
             for e in request.encoders for t in request.tasks for s in request.seeds
         ]
         self.jobs = [SweepJob(p.request.encoder, p.request.task, p.request.seed, p.preset) for p in self.prepared]

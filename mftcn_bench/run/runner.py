@@ -38,7 +38,7 @@ from mftcn_bench.encoders.bases import FrozenBase
 from mftcn_bench.encoders.feature_cache import ensure_feature_cache
 from mftcn_bench.results.store import ResultStore, RunRecord
 from mftcn_bench.sim.rendering import follow_device
-from mftcn_bench.tasks.base import NeedsArtifacts, OnlineTask, ShowsProgress, Task
+from mftcn_bench.tasks.base import ChecksEncoder, NeedsArtifacts, OnlineTask, ShowsProgress, Task
 
 
 @dataclass(frozen=True)
@@ -135,6 +135,8 @@ def prepare(request: RunRequest) -> PreparedRun:
                             f"stride {spec.stride}), longer than the task's {length}-frame episodes; use an "
                             f"encoder with lookback <= {length} or set task.dataset.episode_length >= "
                             f"{spec.lookback}")
+    if untrained is not None and isinstance(task, ChecksEncoder):
+        task.check_encoder(untrained)
     needs_fit = untrained is None or bool(untrained.needs_fit)
     base = None if untrained is None else _base_identity(untrained)
     return PreparedRun(request, preset, config, encoder_entry, task, identity.run_code(encoder_class, task),

@@ -31,7 +31,7 @@ class TaskResult:
 @runtime_checkable
 class Task(Protocol):
     """Constructed as `cls(config, seed)` from the resolved `task` table. Optional capabilities:
-    `OnlineTask`, `NeedsArtifacts`, `ShowsProgress`, `LabelledTask`."""
+    `OnlineTask`, `ChecksEncoder`, `NeedsArtifacts`, `ShowsProgress`, `LabelledTask`."""
 
     @property
     def dataset_config(self) -> Mapping[str, Any]: ...
@@ -56,6 +56,16 @@ class OnlineTask(Protocol):
     the runner collects no data and calls `evaluate_online`."""
 
     def evaluate_online(self, encoder: Encoder, workdir: Path) -> TaskResult: ...
+
+
+@runtime_checkable
+class ChecksEncoder(Protocol):
+    """A task that serves only some encoders (imitation refuses one trained with a policy): the runner asks
+    it about the untrained encoder while planning, before any work."""
+
+    def check_encoder(self, encoder: Encoder) -> None:
+        """Raise a one-line `SpecError` naming what is allowed when the task cannot serve `encoder`."""
+        ...
 
 
 @runtime_checkable

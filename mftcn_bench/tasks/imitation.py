@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -76,12 +76,12 @@ class BCConfig:
     """The `[bc]` table: the clone's MLP, its training budget and its test."""
 
     demonstrations: int    # the first this many recorded episodes are cloned
-    hidden: list[int] = field(default_factory=lambda: [256, 256])
-    lr: float = 0.001
-    steps: int = 3000      # Adam steps, whatever the number of demonstrations
-    batch_size: int = 256
-    eval_episodes: int = 20
-    eval_envs: int = 10    # environments stepped together in the test
+    hidden: list[int]
+    lr: float
+    steps: int             # Adam steps, whatever the number of demonstrations
+    batch_size: int
+    eval_episodes: int
+    eval_envs: int         # environments stepped together in the test
 
     def __post_init__(self) -> None:
         rules = {"demonstrations": self.demonstrations >= 1, "steps": self.steps >= 1,
@@ -193,7 +193,7 @@ class ImitationTask:
         self._bars = enabled
 
     def check_encoder(self, encoder: Encoder) -> None:
-        """Refuse an encoder with nothing to clone from: one trained with a policy (`tasks.requirements`)."""
+        """Refuse an encoder with nothing to clone from: one trained with a policy (`tasks.base.ChecksEncoder`)."""
         if trains_with_policy(encoder):
             raise SpecError(f"task {self.config['name']!r} clones an expert on a frozen embedding; encoder "
                             f"{encoder.info.name!r} is trained with a policy (nothing to clone from): use an "
