@@ -164,7 +164,8 @@ def test_the_demonstrations_are_the_streams_the_clone_sees_online(stand_in_exper
     from mftcn_bench.run.runner import RunRequest, prepare
 
     prepared = prepare(RunRequest("random-state", "imitate-swingup", "smoke", 0,
-                                  (("task.env.episode_length", 160), ("task.demos.episode_length", 20))))
+                                  (("task.env.episode_length", 160), ("task.demos.episode_length", 20),
+                                   ("task.demos.action_noise", 0.0))))  # replayed: the applied actions
     task, encoder = prepared.task, prepared.untrained[0]
     expert = Balancer()
     episode = ExpertDemoCollector(None, task.expert_env, task.expert_ppo, policy=expert)(task.demos_config, 0)
@@ -182,6 +183,27 @@ def test_the_demonstrations_are_the_streams_the_clone_sees_online(stand_in_exper
         td = env.step(td)["next"]
         np.testing.assert_array_equal(td.get("observation").numpy()[0], offline[t])
     env.close()
+
+
+def test_noise_drives_the_recording_and_the_expert_labels_it():
+    """DART: with `action_noise` the episode leaves the noiseless one's path, and every recorded action is
+    still the expert's own at the recorded state; at 0 the data set's config (its id) carries no noise key."""
+    from mftcn_bench.rl.demos import ExpertDemoCollector
+    from mftcn_bench.run.runner import RunRequest, prepare
+
+    def episode(noise: float) -> dict[str, np.ndarray]:
+        task = prepare(RunRequest("true-state", "imitate-swingup", "smoke", 0,
+                                  (("task.demos.episode_length", 40), ("task.demos.action_noise", noise)))).task
+        config = task.demos_config
+        assert ("action_noise" in config) == (noise > 0)
+        return ExpertDemoCollector(None, task.expert_env, task.expert_ppo, policy=Balancer())(config, 0)
+
+    calm, pushed = episode(0.0), episode(0.5)
+    np.testing.assert_array_equal(calm["state"][0], pushed["state"][0])  # the same initial state
+    assert np.abs(calm["state"][-1] - pushed["state"][-1]).max() > 1e-3
+    for recorded in (calm, pushed):
+        labels = np.stack([Balancer().act(s) for s in recorded["state"]])
+        np.testing.assert_allclose(recorded["action"], labels.astype(np.float32))
 
 
 @pytest.mark.parametrize("preset", ["smoke", "quick", "paper"])
@@ -210,6 +232,11 @@ BAD = {
     "no test episodes": (["--set", "task.bc.eval_episodes=0"], ["task.bc.eval_episodes must be >= 1, got 0"]),
     "policy camera not filmed": (["--set", 'task.demos.cameras=["lookatcart"]'],
                                  ["[demos] cameras ['lookatcart'] must hold the policy's camera"]),
+    "negative noise": (["--encoder", "true-state", "--set", "task.demos.action_noise=-0.1"],
+                       ["task.demos.action_noise must be a number >= 0", "got -0.1"]),
+    "noise on the encoder's own data": (["--encoder", "true-state", "--task", "imitate-cheetah", "--set",
+                                         "task.demos.action_noise=0.2"],
+                                        ["task.demos.action_noise must be 0 here", "the encoder's own data"]),
 }
 
 

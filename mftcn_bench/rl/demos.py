@@ -3,7 +3,12 @@
 Each episode starts from the suite's own random initial state (seeded by the dataset seed and the episode
 index) and follows the expert's mean action, held for the environment's action repeat. A frame is rendered
 from all cameras every `[dataset] action_repeat` simulator steps (the encoder's stream: 1, every step; the
-environment's action repeat, every agent step), with its true state and the action applied then.
+environment's action repeat, every agent step), with its true state and the expert's action then.
+
+With `action_noise` > 0 in the data set's config the environment is driven by the expert's action plus
+Gaussian noise of that standard deviation (clipped to the action bounds) while the expert's own action is
+what is recorded: DART (Laskey et al., 2017), so that a clone learns how the expert recovers from the states
+its own small errors lead to. Without the key the episodes are the expert's alone.
 """
 
 from __future__ import annotations
@@ -57,14 +62,16 @@ class ExpertDemoCollector:
         state_dim = physics_state(physics, config["domain"]).shape[0]
         state = np.empty((length, state_dim), dtype=np.float64)
         action = np.empty((length, int(env.action_spec().shape[0])), dtype=np.float32)
-        current = np.zeros(action.shape[1])
+        noise = float(config.get("action_noise", 0.0))
+        current = applied = np.zeros(action.shape[1])
         for step in range(length * every):
             t, filmed = divmod(step, every)
             if step % repeat == 0:
                 current = self._expert.act(physics_state(physics, config["domain"]))
+                applied = np.clip(current + noise * rng.standard_normal(current.shape), -1.0, 1.0) if noise else current
             if filmed == 0:
                 frames[:, t] = renderer.render()
                 state[t] = physics_state(physics, config["domain"])
                 action[t] = current
-            env.step(current)
+            env.step(applied)
         return {"frames": frames, "state": state, "action": action}

@@ -3,8 +3,9 @@ demonstrations, the cheap control readout of frozen-encoder suites (CortexBench,
 
 The expert is PPO on the true state (`[expert_ppo]`, trained once under the home's `experts/`). Its
 demonstrations (`[demos]`) are its episodes filmed by the policy's camera at the encoder's stream (the size,
-render settings and frame rate of the task's `[dataset]`), with the true state and the action of each frame;
-they are recorded once and keyed like any data set, so every encoder clones the same episodes. The task's
+render settings and frame rate of the task's `[dataset]`), with the true state and the expert's action at each
+frame; they are recorded once and keyed like any data set, so every encoder clones the same episodes. With
+`[demos] action_noise` the expert is pushed off its path by noise while it records (DART, `rl.demos`). The task's
 `[dataset]` is the encoder's training data, the matching PPO task's, so a trained encoder is shared with it.
 
 The readout (`[bc]`): the embedding of each demonstration frame (with `[env] embedding_difference`,
@@ -64,11 +65,15 @@ class DemosConfig:
     episode_length: int    # frames
     seed: int              # the demonstrations' initial states (apart from the encoder data's and the test's)
     expert_seed: int       # the expert's PPO seed
+    action_noise: float    # std of the noise added to the expert's actions while recording (DART; `rl.demos`)
 
     def __post_init__(self) -> None:
         if self.episodes < 1 or self.test_episodes < 1 or self.episode_length < 1:
             raise SpecError(f"task.demos: episodes, test_episodes and episode_length must be >= 1, got "
                             f"{self.episodes}, {self.test_episodes} and {self.episode_length}")
+        if not (math.isfinite(self.action_noise) and self.action_noise >= 0):
+            raise SpecError(f"task.demos.action_noise must be a number >= 0 (0: the expert's own actions), got "
+                            f"{self.action_noise}")
 
 
 @dataclass(frozen=True)
@@ -182,11 +187,14 @@ class ImitationTask:
         """The demonstrations' data set: the expert's episodes at the encoder data's size, render settings
         and frame rate, keyed by the expert (another expert records other demonstrations)."""
         data, demos = self.config["dataset"], self.demos
+        # The noise enters only when there is some, so noiseless demonstrations keep the id of the expert data
+        # set they are (cheetah's: the encoder's own data).
+        noise = {"action_noise": demos.action_noise} if demos.action_noise else {}
         return {"name": demos.name, "domain": self.env_config.domain, "cameras": list(demos.cameras),
                 "height": data["height"], "width": data["width"], "train_episodes": demos.episodes,
                 "test_episodes": demos.test_episodes, "episode_length": demos.episode_length,
                 "action_repeat": data["action_repeat"], "seed": demos.seed, "render": data["render"],
-                "expert": expert_key(self.expert_env, self.expert_ppo, demos.expert_seed)}
+                "expert": expert_key(self.expert_env, self.expert_ppo, demos.expert_seed), **noise}
 
     def show_progress(self, enabled: bool) -> None:
         """The expert's PPO bar and the demonstrations' collection bar (`tasks.base.ShowsProgress`)."""
@@ -318,6 +326,10 @@ class ExpertDataImitationTask(ImitationTask):
             raise SpecError(f"task {config['name']!r}: task.demos.expert_seed ({self.demos.expert_seed}) must be "
                             f"the [dataset] seed ({config['dataset']['seed']}), the seed of the expert whose "
                             f"episodes the encoder learns from")
+        if self.demos.action_noise:
+            raise SpecError(f"task {config['name']!r}: task.demos.action_noise must be 0 here: the demonstrations "
+                            f"are the encoder's own data, the expert's episodes as it acts (got "
+                            f"{self.demos.action_noise})")
 
     @property
     def dataset_config(self) -> Mapping[str, Any]:
