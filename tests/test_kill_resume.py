@@ -214,6 +214,54 @@ def test_a_killed_queue_continues_from_its_name_and_exports_every_record(tmp_pat
     assert "4 done, 0 running, 0 left, 0 failed; nothing left to run" in cli(home, "sweep", "status").stdout
 
 
+def _children(pid: int) -> set[int]:
+    """The processes whose parent is `pid` (Linux /proc)."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the process ended while we looked
+            continue
+        if int(fields[1]) == pid:
+            found.add(int(stat.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads processes from Linux's /proc")
+def test_a_sweeps_workers_end_when_its_driver_is_killed(tmp_path):
+    """SIGKILL on the sweep's driver alone (not its process group): its worker processes end within seconds
+    instead of computing on as orphans; the grid continues later from its queue."""
+    home = tmp_path / "home"
+    args = ["sweep", "--encoders", "random-state", "--tasks", "cartpole-probe", "--seeds", "0-3", "--workers", "2",
+            *SMALL, "--set", "task.probe.epochs=400", "--set", "task.probe.hidden=[64, 64]", "--queue", "grid"]
+    proc = subprocess.Popen([sys.executable, "-m", "mftcn_bench.cli", *args], env=env_for(home),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 240
+    try:
+        while len(_children(proc.pid)) < 3:  # the resource tracker and the two workers
+            assert proc.poll() is None and time.monotonic() < deadline, "the sweep never started its workers"
+            time.sleep(0.05)
+        workers = _children(proc.pid)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    end = time.monotonic() + 15
+    while any(_alive(p) for p in workers) and time.monotonic() < end:
+        time.sleep(0.1)
+    left = [p for p in workers if _alive(p)]
+    for pid in left:
+        os.kill(pid, signal.SIGKILL)
+    assert not left, f"{len(left)} worker(s) still running after their driver was killed"
+
+
 # ------------------------------------------------------------------------------------------- concurrency
 
 # Collects with the synthetic collector (the test is about locks, not pixels), logging every episode it

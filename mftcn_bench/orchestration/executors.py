@@ -10,6 +10,8 @@ import multiprocessing
 import os
 import socket
 import tempfile
+import threading
+import time
 import warnings
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
@@ -35,9 +37,26 @@ class Executor(Protocol):
     def close(self) -> None: ...
 
 
+DRIVER_POLL_S = 1.0  # how often a local worker checks that the sweep that started it is alive
+
+
+def _exit_with_driver(driver: int) -> None:
+    """A local worker's initializer: end the worker once its driver is gone (killed, or its session ended), so
+    no orphan goes on computing a job the driver can no longer record; the job resumes from its checkpoint
+    when the sweep is started again. Polled, because a SIGKILLed driver runs no cleanup."""
+
+    def watch() -> None:
+        while os.getppid() == driver:
+            time.sleep(DRIVER_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-driver", daemon=True).start()
+
+
 class LocalExecutor:
     """At most `workers` jobs at once, each in its own spawned process (a fresh interpreter: no state
-    inherited from the driver). The pool starts with the first job and is kept for later phases."""
+    inherited from the driver) that ends when the driver does. The pool starts with the first job and is
+    kept for later phases."""
 
     name = "local"
 
@@ -49,7 +68,8 @@ class LocalExecutor:
         if not specs:
             return
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                             initializer=_exit_with_driver, initargs=(os.getpid(),))
         futures: dict[Future, int] = {self._pool.submit(execute, spec): i for i, spec in enumerate(specs)}
         for future in as_completed(futures):
             try:
