@@ -80,3 +80,11 @@ def test_iqm_column_from_three_seeds_and_tasks_without_a_board_are_named():
     four_board = " ".join(render_boards(four, accept=lambda r: True)["cartpole-probe.md"].split())
     assert "| 4.0000 ± 4.0825 | 2.5000 [" in four_board
     assert "without a board" in files["README.md"] and "unknown-task" in files["README.md"]
+
+
+def test_a_tasks_boards_put_the_paper_preset_first_then_quick_then_the_others():
+    runs = [make_record("mftcn1", "cartpole-probe", 0, {"average": value}, preset=preset)
+            for preset, value in (("demo", 3.0), ("quick", 0.5), ("paper", 0.1), ("smoke", 9.0))]
+    text = render_boards(runs, accept=lambda r: True)["cartpole-probe.md"]
+    headings = [line for line in text.splitlines() if line.startswith("## preset")]
+    assert headings == ["## preset `paper`", "## preset `quick`", "## preset `demo`", "## preset `smoke`"]

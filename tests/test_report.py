@@ -184,3 +184,20 @@ def test_a_3m_run_counts_in_the_3m_row_only_with_the_papers_test_episodes(tmp_pa
     text = report(store, ["swingup-limits"])
     assert "- (861.41)" in line_of(text, "| True state   ", "| 3 M ")
     assert "Not shown: 1 counted run that no row covers (true-state (task.ppo.frames=3000000) on swingup)." in text
+
+
+def test_tables_show_the_paper_presets_runs_before_the_quick_ones_and_name_the_other_presets(tmp_path):
+    """Unnamed, a table shows each paper row's paper-preset runs, then its quick ones, the preset labelled;
+    runs of other presets (demo, smoke) stay out of it and a line names them and how to show them."""
+    store = ResultStore(tmp_path / "results.sqlite")
+    for preset, seed, value in (("quick", 0, 480.0), ("quick", 1, 500.0), ("paper", 0, 690.0), ("smoke", 0, 5.0)):
+        store.put(make_record("mftcn5", "swingup", seed, {"return_mean": value, "return_std": 30.0}, preset=preset))
+    text = report(store, ["swingup"], accept=accept_all)
+    rows = [line for line in text.splitlines() if "| mftcn5 " in line and "| swingup " in line]
+    assert len(rows) == 2 and "| paper " in rows[0] and "| quick " in rows[1]
+    assert "690.00 (701.30)" in rows[0] and "490.00 ± 14.14 (701.30)" in rows[1]
+    assert "5.00" not in text
+    assert "Not shown: 1 stored run of preset smoke (`report swingup --preset smoke` shows them)." in text
+    smoke = report(store, ["swingup"], "smoke", accept=accept_all)
+    assert "5.00 (701.30)" in line_of(smoke, "| mftcn5 ", "| swingup ", "| smoke ") and "690.00" not in smoke
+    assert "Not shown" not in smoke

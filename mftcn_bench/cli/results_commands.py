@@ -61,7 +61,8 @@ def add_commands(commands: argparse._SubParsersAction, common: Callable[[argpars
     report = commands.add_parser("report", help="print the paper's tables from stored results, ours beside "
                                                 "the paper's")
     report.add_argument("table", choices=REPORT_CHOICES)
-    report.add_argument("--preset", help="only results of this preset")
+    report.add_argument("--preset", help="only results of this preset (default: the paper preset's, then the "
+                        "quick preset's, each labelled)")
     report.add_argument("--format", choices=["markdown", "latex"], default="markdown")
     common(report)
     report.set_defaults(handler=cmd_report)

@@ -24,6 +24,7 @@ from mftcn_bench.results.selection import (
     counted_runs,
     left_out_line,
     matches_current_specs,
+    preset_order,
     variant_key,
     variant_label,
 )
@@ -95,7 +96,8 @@ def _by_task_and_preset(runs: Iterable[RunRecord]) -> dict[str, dict[str, list[R
     out: dict[str, dict[str, list[RunRecord]]] = defaultdict(lambda: defaultdict(list))
     for record in runs:
         out[record.task][record.preset].append(record)
-    return {task: dict(sorted(presets.items())) for task, presets in sorted(out.items())}
+    return {task: dict(sorted(presets.items(), key=lambda item: preset_order(item[0])))
+            for task, presets in sorted(out.items())}
 
 
 def _explain(rank: Ranking) -> str:

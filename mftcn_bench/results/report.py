@@ -2,15 +2,18 @@
 beside the paper's, as markdown or LaTeX.
 
 What each table holds is data in `paper_tables`; this module fills its rows from the store. A paper row
-with no stored run shows "-" for ours. Stored runs of a table's tasks that no paper row covers (another
-encoder, another embedding size) follow as extra rows marked "(not in paper)", except in a table of chosen
-analyses (`PaperTable.other_runs` False), which names them in a line instead.
+with no stored run shows "-" for ours. Unless a preset is named, a table shows the runs of the paper preset
+and then of the quick one (`selection.TABLE_PRESETS`), each paper row once per preset that has runs, the
+preset in its own column; a line names the stored runs of other presets it leaves aside. Stored runs of a
+table's tasks that no paper row covers (another encoder, another embedding size) follow as extra rows marked
+"(not in paper)", except in a table of chosen analyses (`PaperTable.other_runs` False), which names them in
+a line instead.
 """
 
 from __future__ import annotations
 
 import re
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -19,6 +22,7 @@ from tabulate import tabulate
 
 from mftcn_bench.results.paper_tables import TABLES, PaperRow, PaperTable
 from mftcn_bench.results.selection import (
+    TABLE_PRESETS,
     VARIED,
     Accept,
     SpecDefaults,
@@ -29,6 +33,7 @@ from mftcn_bench.results.selection import (
     left_out_line,
     lookup,
     matches_current_specs,
+    preset_order,
     variant_key,
     variant_label,
 )
@@ -79,14 +84,14 @@ def _by_preset(runs: Iterable[RunRecord]) -> dict[str, list[RunRecord]]:
     groups: dict[str, list[RunRecord]] = defaultdict(list)
     for record in runs:
         groups[record.preset].append(record)
-    return dict(sorted(groups.items()))
+    return dict(sorted(groups.items(), key=lambda item: preset_order(item[0])))
 
 
 def _counted(table: PaperTable, records: Iterable[RunRecord], preset: str | None,
              accept: Accept | None) -> list[RunRecord]:
     accept = accept or current_specs_varying(table.varied)
     return [r for r in counted_runs(records, accept, table.varied)
-            if r.task in table.tasks and (preset is None or r.preset == preset)]
+            if r.task in table.tasks and (r.preset in TABLE_PRESETS if preset is None else r.preset == preset)]
 
 
 def _uncovered(table: PaperTable, runs: Sequence[RunRecord],
@@ -101,9 +106,10 @@ def _uncovered(table: PaperTable, runs: Sequence[RunRecord],
 
 def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | None = None,
                accept: Accept | None = None) -> list[ReportRow]:
-    """The table's rows from `records`: each paper row once per preset that has runs for it (or once with
-    "-" when none has), then (if the table shows them) the runs no paper row covers. By default the runs of
-    today's specs count, with at most the table's `varied` keys overridden."""
+    """The table's rows from `records`: each paper row once per preset that has runs for it, paper before
+    quick (or once with "-" when none has), then (if the table shows them) the runs no paper row covers.
+    `preset` None: the table presets (`TABLE_PRESETS`). By default the runs of today's specs count, with at
+    most the table's `varied` keys overridden."""
     runs = _counted(table, records, preset, accept)
     defaults = SpecDefaults()
     rows: list[ReportRow] = []
@@ -137,6 +143,20 @@ def not_shown_line(table: PaperTable, records: Iterable[RunRecord], preset: str 
     total = sum(len(g) for g in groups.values())
     names = ", ".join(f"{variant_label(g[0], table.varied)} on {g[0].task}" for g in groups.values())
     return f"Not shown: {total} counted run{'s' if total > 1 else ''} that no row covers ({names})."
+
+
+def other_presets_line(table: PaperTable, records: Iterable[RunRecord]) -> str | None:
+    """For a table of the default presets: `Not shown: 3 stored runs of preset demo (`report probe --preset
+    demo` shows them).`; None when every stored run of its tasks is of a table preset."""
+    counts = Counter(r.preset for r in records if r.task in table.tasks and r.preset not in TABLE_PRESETS)
+    if not counts:
+        return None
+    total = sum(counts.values())
+    names = ", ".join(f"{name} ({n})" if len(counts) > 1 else name
+                      for name, n in sorted(counts.items(), key=lambda item: preset_order(item[0])))
+    first = min(counts, key=preset_order)
+    return (f"Not shown: {total} stored run{'s' if total > 1 else ''} of preset{'s' if len(counts) > 1 else ''} "
+            f"{names} (`report {table.name} --preset {first}` shows them).")
 
 
 _LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$",
@@ -184,16 +204,17 @@ def render(table: PaperTable, rows: Sequence[ReportRow], fmt: Format = "markdown
 
 def report(store: ResultStore, names: Sequence[str], preset: str | None = None, fmt: Format = "markdown",
            accept: Accept | None = None) -> str:
-    """The named tables (see TABLES) rendered from `store`, each followed by the line saying which of its
-    tasks' stored runs it left out, separated by blank lines."""
+    """The named tables (see TABLES) rendered from `store` (`preset` None: the table presets), each followed
+    by the lines saying which of its tasks' stored runs it left out, separated by blank lines."""
     records = store.query(preset=preset)
     parts = []
     for name in names:
         table = TABLES[name]
         parts.append(render(table, table_rows(table, records, preset, accept), fmt))
-        skipped = left_out_line([r for r in records if r.task in table.tasks],
-                                accept or current_specs_varying(table.varied), table.varied)
-        for line in (skipped, not_shown_line(table, records, preset, accept)):
+        shown = [r for r in records if r.task in table.tasks and (preset is not None or r.preset in TABLE_PRESETS)]
+        skipped = left_out_line(shown, accept or current_specs_varying(table.varied), table.varied)
+        other_presets = None if preset is not None else other_presets_line(table, records)
+        for line in (skipped, not_shown_line(table, records, preset, accept), other_presets):
             if line:
                 parts.append(f"% {line}" if fmt == "latex" else line)
     return "\n\n".join(parts)

@@ -21,6 +21,15 @@ Accept = Callable[[RunRecord], bool]
 
 VARIED: tuple[str, ...] = ("encoder.embedding_dim",)  # what a table varies between rows unless it says more
 
+# The presets a table shows when none is named, in the order its rows show them: the paper's protocol, then
+# the quick budget. Others (smoke, demo) check the machinery on toy data and are shown only when named.
+TABLE_PRESETS: tuple[str, ...] = ("paper", "quick")
+
+
+def preset_order(preset: str) -> tuple[int, str]:
+    """Sort key of a preset: the table presets in their order, then the others by name."""
+    return (TABLE_PRESETS.index(preset) if preset in TABLE_PRESETS else len(TABLE_PRESETS), preset)
+
 
 def exclusion(record: RunRecord, varied: Sequence[str] = VARIED) -> str | None:
     """Why a stored run does not count for today's specs with the `varied` keys as the run had them (None:
