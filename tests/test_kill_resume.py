@@ -205,6 +205,7 @@ def test_a_killed_queue_continues_from_its_name_and_exports_every_record(tmp_pat
     assert 1 <= len(stored) < 4 and {p.stem for p in export.glob("*.json")} <= set(stored)
     status = cli(home, "sweep", "status", "--queue", "grid").stdout
     assert f"{len(stored)} done, 0 running, {4 - len(stored)} left, 0 failed" in status, status
+    assert "stopped while running" in status and "`mftcn-bench sweep --queue grid` continues it" in status, status
 
     out = cli(home, "sweep", "--queue", "grid").stdout
     assert f"{len(stored)} reused" in out and "0 failed" in out

@@ -139,3 +139,44 @@ def test_ray_sweep_gives_the_same_metrics_as_the_local_pool(local_home, tmp_path
         assert record.run_id == local[(record.encoder, record.seed)].run_id
         assert record.metrics == local[(record.encoder, record.seed)].metrics
     assert metrics_by_job(ray_home) == metrics_by_job(home)
+
+
+class InstantJobs:
+    """An executor whose data sets and fits succeed at once and whose runs fail, in submission order."""
+
+    name = "instant"
+
+    def map(self, specs):
+        from mftcn_bench.orchestration.jobs import JobResult
+
+        for i, spec in enumerate(specs):
+            yield i, (JobResult(False, error="not run here") if spec.kind == "run" else
+                      JobResult(True, fingerprint="f" * 16))
+
+    def close(self):
+        pass
+
+
+class Stages:
+    def __init__(self):
+        self.seen = []
+
+    def jobs_changed(self, jobs):
+        pass
+
+    def stage_changed(self, stage):
+        self.seen.append((stage.kind, stage.done, stage.total))
+
+    def record_stored(self, record):
+        pass
+
+
+def test_a_sweep_tells_its_listener_each_stage_and_how_many_of_its_jobs_are_done(tmp_path):
+    """Data sets, then one fit per (encoder that trains, seed), then the runs: what `sweep status` reads."""
+    from mftcn_bench.orchestration.sweep import Sweep
+
+    listener = Stages()
+    request = SweepRequest(("true-state", "mftcn1"), ("cartpole-probe",), SEEDS, "smoke", tiny_overrides())
+    Sweep(request, BenchHome.resolve(tmp_path / "home"), echo=lambda line: None, listener=listener).run(InstantJobs())
+    assert listener.seen == [("dataset", 0, 1), ("dataset", 1, 1), ("encoder", 0, 2), ("encoder", 1, 2),
+                             ("encoder", 2, 2), *(("run", n, 4) for n in range(5))]

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
 from dataclasses import replace
 
 import pytest
 
 from mftcn_bench.core.fileio import exclusive_lock
 from mftcn_bench.orchestration.queue import QueueError, SweepQueue, queue_status
-from mftcn_bench.orchestration.sweep import SweepJob, SweepRequest
+from mftcn_bench.orchestration.sweep import SweepJob, SweepRequest, SweepStage
 from tests.records import make_record
 
 GRID = SweepRequest(("a", "b"), ("t",), (0, 1), "quick", workers=2)
@@ -62,3 +63,43 @@ def test_a_queue_keeps_its_grid_and_export_folder(home, tmp_path):
         SweepQueue.open(home, "../x", GRID)
     data = json.loads((home.root / "queues" / "grid.json").read_text())
     assert data["request"]["seeds"] == [0, 1] and data["export"] == str((tmp_path / "out").resolve())
+
+
+def _set_stage(home, **fields):
+    path = home.root / "queues" / "grid.json"
+    data = json.loads(path.read_text())
+    data["stage"].update(fields)
+    path.write_text(json.dumps(data))
+
+
+def test_status_counts_the_fits_before_the_first_run_at_their_measured_pace(home):
+    from mftcn_bench.results.store import ResultStore
+
+    queue = SweepQueue.open(home, "grid", GRID)
+    queue.jobs_changed(_jobs("r0", "r1", "r2", "r3"))
+    ResultStore(home.database).put(replace(make_record("a", "t", 0, {"m": 1.0}), run_id="r0",
+                                           timings={"total_s": 100.0}))
+    queue.stage_changed(SweepStage("encoder", 0, 8))
+    status = queue_status(home, "grid")
+    assert "now fitting encoders, 0 of 8 done (their time is not in the estimate until one finishes)" \
+        in status.summary() and status.stage_left_s is None
+    now = 1_000_000.0
+    queue.stage_changed(SweepStage("encoder", 2, 8))
+    _set_stage(home, started_at=now - 300, updated_at=now - 60)  # two fits in 240 s: 120 s a fit
+    status = queue_status(home, "grid", now=now)
+    assert status.stage_left_s == pytest.approx(120 * 6 - 60)
+    assert status.left_s == pytest.approx(3 * 100 / 2)  # the runs: three left of 100 s, two at once
+    assert ("1 done, 0 running, 3 left, 0 failed; now fitting encoders, 2 of 8 done, about 0 h 11 min left for "
+            "them; about 0 h 14 min left at 2 job(s) at once") in status.summary()
+
+
+def test_status_tells_a_stopped_queue_from_a_running_one(home):
+    queue = SweepQueue.open(home, "grid", GRID)
+    queue.jobs_changed(_jobs("r0", "r1", "r2", "r3"))
+    queue.stage_changed(SweepStage("encoder", 3, 8))
+    assert "now fitting encoders, 3 of 8 done" in queue_status(home, "grid").summary()  # this process: alive
+    ended = subprocess.Popen(["true"])
+    ended.wait()
+    _set_stage(home, pid=ended.pid)
+    assert ("stopped while fitting encoders, 3 of 8 done; `mftcn-bench sweep --queue grid` continues it"
+            in queue_status(home, "grid").summary())

@@ -6,12 +6,17 @@ killed (`sweep --queue NAME`, the grid read back), the sweep skips finished runs
 ones from their checkpoints (`run.runner`). `mftcn-bench sweep status --queue NAME` reads the file and the
 home: a job is done when the store holds its run id, running while a process holds the run's lock
 (`runs/.<id>.lock`), and its time left is estimated from the measured times of the queue's finished jobs.
+The file also holds the sweep's stage (data sets, encoder fits, runs: `SweepStage`) and which process
+drives it, so that the status can say how far the fits before the first run got, count their time left
+at their measured pace, and tell a stopped queue from a running one.
 """
 
 from __future__ import annotations
 
 import fcntl
 import json
+import os
+import socket
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -22,7 +27,7 @@ from typing import Any
 from mftcn_bench.core.errors import SpecError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.core.home import BenchHome
-from mftcn_bench.orchestration.sweep import SweepJob, SweepRequest
+from mftcn_bench.orchestration.sweep import SweepJob, SweepRequest, SweepStage
 from mftcn_bench.results.records_io import record_to_json
 from mftcn_bench.results.store import ResultStore, RunRecord
 
@@ -55,6 +60,8 @@ class SweepQueue:
     def __init__(self, home: BenchHome, name: str, request: SweepRequest, export: Path | None) -> None:
         self.home, self.name, self.request, self.export = home, name, request, export
         self.path = queue_path(home, name)
+        self._jobs: list[dict[str, Any]] = []
+        self._stage: dict[str, Any] | None = None
 
     @classmethod
     def open(cls, home: BenchHome, name: str, request: SweepRequest | None = None,
@@ -72,7 +79,9 @@ class SweepQueue:
         data = json.loads(path.read_text(encoding="utf-8"))
         stored = request_from_json(data["request"]) if request is None else request  # workers etc.: this start's
         recorded = data.get("export")
-        return cls(home, name, stored, export or (Path(recorded) if recorded else None))
+        queue = cls(home, name, stored, export or (Path(recorded) if recorded else None))
+        queue._jobs = data["jobs"]  # kept until this start's sweep reports its own
+        return queue
 
     @staticmethod
     def check(home: BenchHome, name: str, request: SweepRequest | None) -> None:
@@ -87,11 +96,22 @@ class SweepQueue:
                              f"with `sweep --queue {name}` alone, or start a new queue under another name")
 
     def jobs_changed(self, jobs: Sequence[SweepJob]) -> None:
+        self._jobs = [asdict(job) for job in jobs]
+        self._write()
+
+    def stage_changed(self, stage: SweepStage) -> None:
+        now = time.time()
+        same = self._stage is not None and self._stage["kind"] == stage.kind and self._stage["pid"] == os.getpid()
+        self._stage = {**asdict(stage), "started_at": self._stage["started_at"] if same else now,
+                       "updated_at": now, "pid": os.getpid(), "host": socket.gethostname()}
+        self._write()
+
+    def _write(self) -> None:
         with exclusive_lock(self.path.with_suffix(".lock")):
             data = {"name": self.name, "request": _request_json(self.request),
                     "export": None if self.export is None else str(self.export.resolve()),
                     "updated_at": datetime.now(UTC).isoformat(timespec="seconds"),
-                    "jobs": [asdict(job) for job in jobs]}
+                    "stage": self._stage, "jobs": self._jobs}
             atomic_write_bytes(self.path, json.dumps(data, indent=1).encode())
 
     def record_stored(self, record: RunRecord) -> None:
@@ -114,24 +134,69 @@ def _running_since(lock: Path) -> float | None:
     return None
 
 
+_STAGE_NAMES = {"dataset": "building data sets", "encoder": "fitting encoders", "run": "running"}
+
+
+def _driver_alive(stage: dict[str, Any]) -> bool:
+    """Whether the process that wrote the stage still runs (assumed so when it ran on another host)."""
+    if stage.get("host") != socket.gethostname():
+        return True
+    try:
+        os.kill(int(stage["pid"]), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _stage_progress(name: str, stage: dict[str, Any] | None, now: float) -> tuple[str | None, float | None]:
+    """A phrase on the sweep's stage (None when there is nothing to add to the jobs' rows) and the time its
+    data sets or fits still need at their measured pace (None: not measured yet, or not such a stage)."""
+    if not stage:
+        return None, None
+    kind, done, total = stage["kind"], int(stage["done"]), int(stage["total"])
+    what = f"{_STAGE_NAMES[kind]}, {done} of {total} done"
+    if not _driver_alive(stage):
+        return f"stopped while {what}; `mftcn-bench sweep --queue {name}` continues it", None
+    if kind == "run" or done >= total:
+        return None, None
+    if not done:
+        return f"now {what} (their time is not in the estimate until one finishes)", None
+    pace = (float(stage["updated_at"]) - float(stage["started_at"])) / done
+    return f"now {what}", max(0.0, pace * (total - done) - (now - float(stage["updated_at"])))
+
+
+def _hours(seconds: float) -> str:
+    hours, minutes = divmod(round(seconds / 60), 60)
+    return f"{hours} h {minutes:02d} min"
+
+
 @dataclass(frozen=True)
 class QueueStatus:
-    """What `sweep status` prints: one row per job, the counts, and the time left."""
+    """What `sweep status` prints: one row per job, the counts, the sweep's stage, and the time left."""
 
     rows: list[dict[str, Any]]
     counts: dict[str, int]
-    left_s: float | None  # None: no finished job of the queue to estimate from
+    left_s: float | None  # the runs' time left; None: no finished job of the queue to estimate from
     workers: int
+    stage: str | None = None  # fits before the first run, or a stopped driver (`_stage_progress`)
+    stage_left_s: float | None = None  # the time the stage's data sets or fits still need
 
     def summary(self) -> str:
         counts = ", ".join(f"{n} {state}" for state, n in self.counts.items())
         if not self.counts["left"] and not self.counts["running"]:
             return f"{counts}; nothing left to run"
+        parts = [counts]
+        if self.stage:
+            parts.append(self.stage + ("" if self.stage_left_s is None else
+                                       f", about {_hours(self.stage_left_s)} left for them"))
         if self.left_s is None:
-            return f"{counts}; no finished job yet to estimate the time left from"
-        hours, minutes = divmod(round(self.left_s / 60), 60)
-        return (f"{counts}; about {hours} h {minutes:02d} min left at {self.workers} job(s) at once "
-                f"(from the measured times of the finished jobs)")
+            parts.append("no finished job yet to estimate the time left from")
+        else:
+            parts.append(f"about {_hours(self.left_s + (self.stage_left_s or 0.0))} left at {self.workers} "
+                         f"job(s) at once (from the measured times of the finished jobs)")
+        return "; ".join(parts)
 
 
 def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueStatus:
@@ -172,9 +237,10 @@ def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueS
         work += sum(max(0.0, expected(j.task) - (now - since[id(j)]))
                     for j, s in zip(jobs, states, strict=True) if s == "running")
         left_s = work / max(1, int(data["request"]["workers"]))
+    stage, stage_left_s = _stage_progress(name, data.get("stage"), now)
     rows = [{"encoder": j.encoder, "task": j.task, "seed": j.seed, "state": s, "run id": j.run_id or "-",
              "running for": f"{(now - since[id(j)]) / 60:.0f} min" if s == "running" else "",
              "error": (j.error or "") if s == "failed" else ""}
             for j, s in zip(jobs, states, strict=True)]
     counts = {state: states.count(state) for state in ("done", "running", "left", "failed")}
-    return QueueStatus(rows, counts, left_s, int(data["request"]["workers"]))
+    return QueueStatus(rows, counts, left_s, int(data["request"]["workers"]), stage, stage_left_s)

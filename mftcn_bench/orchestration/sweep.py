@@ -62,11 +62,23 @@ class SweepJob:
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class SweepStage:
+    """Which stage a sweep is in (building datasets, fitting encoders, running) and how many of that stage's
+    jobs are done: until the runs start, the jobs' states alone do not say how far a sweep got."""
+
+    kind: JobKind
+    done: int
+    total: int
+
+
 class SweepListener(Protocol):
-    """Told of each change of the jobs' states and of each record the driver stores (a queue keeps them in
-    the home and exports the records: `orchestration.queue`)."""
+    """Told of each change of the jobs' states, of each stage's progress and of each record the driver
+    stores (a queue keeps them in the home and exports the records: `orchestration.queue`)."""
 
     def jobs_changed(self, jobs: Sequence[SweepJob]) -> None: ...
+
+    def stage_changed(self, stage: SweepStage) -> None: ...
 
     def record_stored(self, record: RunRecord) -> None: ...
 
@@ -139,8 +151,10 @@ class Sweep:
         keys = list(groups)
         specs = [self._spec(kind, self.prepared[groups[k][0]], n) for n, k in enumerate(keys)]
         results: dict[str, JobResult] = {}
+        self._stage(kind, 0, len(specs))
         for n, (i, result) in enumerate(executor.map(specs), 1):
             results[keys[i]] = result
+            self._stage(kind, n, len(specs))
             job = self.jobs[groups[keys[i]][0]]
             state = "ok" if result.ok else f"FAILED: {result.error}"
             self.echo(f"[{kind} {n}/{len(specs)}] {job.task}" + (f" {job.encoder} seed {job.seed}"
@@ -149,6 +163,10 @@ class Sweep:
 
     def _fail(self, index: int, error: str) -> None:
         self.jobs[index].status, self.jobs[index].error = "failed", error
+
+    def _stage(self, kind: JobKind, done: int, total: int) -> None:
+        if self.listener is not None and total:
+            self.listener.stage_changed(SweepStage(kind, done, total))
 
     def _changed(self) -> None:
         if self.listener is not None:
@@ -226,7 +244,9 @@ class Sweep:
         # 4. the runs
         runs = [i for i in todo if self.jobs[i].status == "planned"]
         specs = [self._spec("run", self.prepared[i], n) for n, i in enumerate(runs)]
+        self._stage("run", 0, len(specs))
         for n, (k, result) in enumerate(executor.map(specs), 1):
+            self._stage("run", n, len(specs))
             job = self.jobs[runs[k]]
             job.seconds = result.seconds
             if result.ok and result.record is not None:
