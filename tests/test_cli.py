@@ -54,8 +54,11 @@ def test_second_run_reuses_result_and_new_encoder_reuses_dataset(smoke_home):
 
 
 def test_report_probe_shows_ours_beside_paper(smoke_home):
-    out = cli("report", "probe", home=smoke_home).stdout
+    out = cli("report", "probe", "--preset", "smoke", home=smoke_home).stdout
     assert "| smoke" in out and "(0.0401)" in out and "(0.1062)" in out
+    default = cli("report", "probe", home=smoke_home).stdout  # the paper and quick presets' runs only
+    assert "| smoke" not in default and "(0.0401)" in default
+    assert "of preset smoke (`report probe --preset smoke` shows them)" in default
 
 
 def test_list_shows_descriptions(tmp_path):
