@@ -101,7 +101,7 @@ class SweepQueue:
 
     def stage_changed(self, stage: SweepStage) -> None:
         now = time.time()
-        same = self._stage is not None and self._stage["kind"] == stage.kind and self._stage["pid"] == os.getpid()
+        same = self._stage is not None and self._stage["kind"] == stage.kind  # only this process sets it
         self._stage = {**asdict(stage), "started_at": self._stage["started_at"] if same else now,
                        "updated_at": now, "pid": os.getpid(), "host": socket.gethostname()}
         self._write()

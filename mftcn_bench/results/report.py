@@ -87,11 +87,16 @@ def _by_preset(runs: Iterable[RunRecord]) -> dict[str, list[RunRecord]]:
     return dict(sorted(groups.items(), key=lambda item: preset_order(item[0])))
 
 
+def _in_view(table: PaperTable, record: RunRecord, preset: str | None) -> bool:
+    """Whether `record` is of `table`'s tasks and of `preset` (None: of a table preset)."""
+    return record.task in table.tasks and (record.preset in TABLE_PRESETS if preset is None
+                                           else record.preset == preset)
+
+
 def _counted(table: PaperTable, records: Iterable[RunRecord], preset: str | None,
              accept: Accept | None) -> list[RunRecord]:
     accept = accept or current_specs_varying(table.varied)
-    return [r for r in counted_runs(records, accept, table.varied)
-            if r.task in table.tasks and (r.preset in TABLE_PRESETS if preset is None else r.preset == preset)]
+    return [r for r in counted_runs(records, accept, table.varied) if _in_view(table, r, preset)]
 
 
 def _uncovered(table: PaperTable, runs: Sequence[RunRecord],
@@ -211,8 +216,8 @@ def report(store: ResultStore, names: Sequence[str], preset: str | None = None, 
     for name in names:
         table = TABLES[name]
         parts.append(render(table, table_rows(table, records, preset, accept), fmt))
-        shown = [r for r in records if r.task in table.tasks and (preset is not None or r.preset in TABLE_PRESETS)]
-        skipped = left_out_line(shown, accept or current_specs_varying(table.varied), table.varied)
+        skipped = left_out_line([r for r in records if _in_view(table, r, preset)],
+                                accept or current_specs_varying(table.varied), table.varied)
         other_presets = None if preset is not None else other_presets_line(table, records)
         for line in (skipped, not_shown_line(table, records, preset, accept), other_presets):
             if line:
