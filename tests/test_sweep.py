@@ -142,7 +142,8 @@ def test_ray_sweep_gives_the_same_metrics_as_the_local_pool(local_home, tmp_path
 
 
 class InstantJobs:
-    """An executor whose data sets and fits succeed at once and whose runs fail, in submission order."""
+    """An executor whose data sets and fits succeed, each said to take 30 s (the first fit reused, taking 0.5 s),
+    and whose runs fail, in submission order."""
 
     name = "instant"
 
@@ -150,8 +151,9 @@ class InstantJobs:
         from mftcn_bench.orchestration.jobs import JobResult
 
         for i, spec in enumerate(specs):
+            reused = spec.kind == "encoder" and i == 0
             yield i, (JobResult(False, error="not run here") if spec.kind == "run" else
-                      JobResult(True, fingerprint="f" * 16))
+                      JobResult(True, fingerprint="f" * 16, reused=reused, seconds=0.5 if reused else 30.0))
 
     def close(self):
         pass
@@ -165,18 +167,20 @@ class Stages:
         pass
 
     def stage_changed(self, stage):
-        self.seen.append((stage.kind, stage.done, stage.total))
+        self.seen.append((stage.kind, stage.done, stage.total, stage.worked, stage.worked_s))
 
     def record_stored(self, record):
         pass
 
 
 def test_a_sweep_tells_its_listener_each_stage_and_how_many_of_its_jobs_are_done(tmp_path):
-    """Data sets, then one fit per (encoder that trains, seed), then the runs: what `sweep status` reads."""
+    """Data sets, then one fit per (encoder that trains, seed), then the runs: what `sweep status` reads; a
+    reused fit is counted done but not in the pace (`worked`, `worked_s`)."""
     from mftcn_bench.orchestration.sweep import Sweep
 
     listener = Stages()
     request = SweepRequest(("true-state", "mftcn1"), ("cartpole-probe",), SEEDS, "smoke", tiny_overrides())
     Sweep(request, BenchHome.resolve(tmp_path / "home"), echo=lambda line: None, listener=listener).run(InstantJobs())
-    assert listener.seen == [("dataset", 0, 1), ("dataset", 1, 1), ("encoder", 0, 2), ("encoder", 1, 2),
-                             ("encoder", 2, 2), *(("run", n, 4) for n in range(5))]
+    assert listener.seen == [("dataset", 0, 1, 0, 0.0), ("dataset", 1, 1, 1, 30.0), ("encoder", 0, 2, 0, 0.0),
+                             ("encoder", 1, 2, 0, 0.0), ("encoder", 2, 2, 1, 30.0),
+                             *(("run", n, 4, 0, 0.0) for n in range(5))]

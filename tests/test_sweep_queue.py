@@ -81,16 +81,18 @@ def test_status_counts_the_fits_before_the_first_run_at_their_measured_pace(home
                                            timings={"total_s": 100.0}))
     queue.stage_changed(SweepStage("encoder", 0, 8))
     status = queue_status(home, "grid")
-    assert "now fitting encoders, 0 of 8 done (their time is not in the estimate until one finishes)" \
-        in status.summary() and status.stage_left_s is None
+    assert ("now fitting encoders, 0 of 8 done (their time is not in the estimate until one that is not reused "
+            "finishes)") in status.summary() and status.stage_left_s is None
+    queue.stage_changed(SweepStage("encoder", 1, 8, worked=0, worked_s=0.0))  # a fit of an earlier start
+    assert queue_status(home, "grid").stage_left_s is None
     now = 1_000_000.0
-    queue.stage_changed(SweepStage("encoder", 2, 8))
-    _set_stage(home, started_at=now - 300, updated_at=now - 60)  # two fits in 240 s: 120 s a fit
+    queue.stage_changed(SweepStage("encoder", 3, 8, worked=2, worked_s=480.0))  # 240 s a fit, 2 at once
+    _set_stage(home, updated_at=now - 60)
     status = queue_status(home, "grid", now=now)
-    assert status.stage_left_s == pytest.approx(120 * 6 - 60)
+    assert status.stage_left_s == pytest.approx(240 * 5 / 2 - 60)
     assert status.left_s == pytest.approx(3 * 100 / 2)  # the runs: three left of 100 s, two at once
-    assert ("1 done, 0 running, 3 left, 0 failed; now fitting encoders, 2 of 8 done, about 0 h 11 min left for "
-            "them; about 0 h 14 min left at 2 job(s) at once") in status.summary()
+    assert ("1 done, 0 running, 3 left, 0 failed; now fitting encoders, 3 of 8 done, about 0 h 09 min left for "
+            "them; about 0 h 12 min left at 2 job(s) at once") in status.summary()
 
 
 def test_status_tells_a_stopped_queue_from_a_running_one(home):

@@ -8,7 +8,8 @@ home: a job is done when the store holds its run id, running while a process hol
 (`runs/.<id>.lock`), and its time left is estimated from the measured times of the queue's finished jobs.
 The file also holds the sweep's stage (data sets, encoder fits, runs: `SweepStage`) and which process
 drives it, so that the status can say how far the fits before the first run got, count their time left
-at their measured pace, and tell a stopped queue from a running one.
+at the pace of those that did their work (a fit reused from an earlier start takes none and says nothing
+of it), and tell a stopped queue from a running one.
 """
 
 from __future__ import annotations
@@ -100,10 +101,8 @@ class SweepQueue:
         self._write()
 
     def stage_changed(self, stage: SweepStage) -> None:
-        now = time.time()
-        same = self._stage is not None and self._stage["kind"] == stage.kind  # only this process sets it
-        self._stage = {**asdict(stage), "started_at": self._stage["started_at"] if same else now,
-                       "updated_at": now, "pid": os.getpid(), "host": socket.gethostname()}
+        self._stage = {**asdict(stage), "updated_at": time.time(), "pid": os.getpid(),
+                       "host": socket.gethostname()}
         self._write()
 
     def _write(self) -> None:
@@ -150,9 +149,11 @@ def _driver_alive(stage: dict[str, Any]) -> bool:
     return True
 
 
-def _stage_progress(name: str, stage: dict[str, Any] | None, now: float) -> tuple[str | None, float | None]:
+def _stage_progress(name: str, stage: dict[str, Any] | None, now: float,
+                    workers: int) -> tuple[str | None, float | None]:
     """A phrase on the sweep's stage (None when there is nothing to add to the jobs' rows) and the time its
-    data sets or fits still need at their measured pace (None: not measured yet, or not such a stage)."""
+    data sets or fits still need at the pace of those that did their work (None: not measured yet, or not
+    such a stage)."""
     if not stage:
         return None, None
     kind, done, total = stage["kind"], int(stage["done"]), int(stage["total"])
@@ -161,9 +162,10 @@ def _stage_progress(name: str, stage: dict[str, Any] | None, now: float) -> tupl
         return f"stopped while {what}; `mftcn-bench sweep --queue {name}` continues it", None
     if kind == "run" or done >= total:
         return None, None
-    if not done:
-        return f"now {what} (their time is not in the estimate until one finishes)", None
-    pace = (float(stage["updated_at"]) - float(stage["started_at"])) / done
+    worked = int(stage.get("worked", 0))  # absent in the files of drivers older than the field
+    if not worked:
+        return f"now {what} (their time is not in the estimate until one that is not reused finishes)", None
+    pace = float(stage["worked_s"]) / worked / max(1, workers)
     return f"now {what}", max(0.0, pace * (total - done) - (now - float(stage["updated_at"])))
 
 
@@ -237,7 +239,7 @@ def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueS
         work += sum(max(0.0, expected(j.task) - (now - since[id(j)]))
                     for j, s in zip(jobs, states, strict=True) if s == "running")
         left_s = work / max(1, int(data["request"]["workers"]))
-    stage, stage_left_s = _stage_progress(name, data.get("stage"), now)
+    stage, stage_left_s = _stage_progress(name, data.get("stage"), now, int(data["request"]["workers"]))
     rows = [{"encoder": j.encoder, "task": j.task, "seed": j.seed, "state": s, "run id": j.run_id or "-",
              "running for": f"{(now - since[id(j)]) / 60:.0f} min" if s == "running" else "",
              "error": (j.error or "") if s == "failed" else ""}

@@ -70,6 +70,8 @@ class SweepStage:
     kind: JobKind
     done: int
     total: int
+    worked: int = 0  # of the done jobs, those that did the work (not reused from an earlier start) ...
+    worked_s: float = 0.0  # ... and their seconds: a reused fit takes none and says nothing of the pace
 
 
 class SweepListener(Protocol):
@@ -151,10 +153,13 @@ class Sweep:
         keys = list(groups)
         specs = [self._spec(kind, self.prepared[groups[k][0]], n) for n, k in enumerate(keys)]
         results: dict[str, JobResult] = {}
-        self._stage(kind, 0, len(specs))
+        worked: list[JobResult] = []  # the results of the jobs that did their work (`SweepStage.worked`)
+        self._stage(SweepStage(kind, 0, len(specs)))
         for n, (i, result) in enumerate(executor.map(specs), 1):
             results[keys[i]] = result
-            self._stage(kind, n, len(specs))
+            if result.ok and not result.reused:
+                worked.append(result)
+            self._stage(SweepStage(kind, n, len(specs), len(worked), sum(r.seconds for r in worked)))
             job = self.jobs[groups[keys[i]][0]]
             state = "ok" if result.ok else f"FAILED: {result.error}"
             self.echo(f"[{kind} {n}/{len(specs)}] {job.task}" + (f" {job.encoder} seed {job.seed}"
@@ -164,9 +169,9 @@ class Sweep:
     def _fail(self, index: int, error: str) -> None:
         self.jobs[index].status, self.jobs[index].error = "failed", error
 
-    def _stage(self, kind: JobKind, done: int, total: int) -> None:
-        if self.listener is not None and total:
-            self.listener.stage_changed(SweepStage(kind, done, total))
+    def _stage(self, stage: SweepStage) -> None:
+        if self.listener is not None and stage.total:
+            self.listener.stage_changed(stage)
 
     def _changed(self) -> None:
         if self.listener is not None:
@@ -244,9 +249,9 @@ class Sweep:
         # 4. the runs
         runs = [i for i in todo if self.jobs[i].status == "planned"]
         specs = [self._spec("run", self.prepared[i], n) for n, i in enumerate(runs)]
-        self._stage("run", 0, len(specs))
+        self._stage(SweepStage("run", 0, len(specs)))
         for n, (k, result) in enumerate(executor.map(specs), 1):
-            self._stage("run", n, len(specs))
+            self._stage(SweepStage("run", n, len(specs)))
             job = self.jobs[runs[k]]
             job.seconds = result.seconds
             if result.ok and result.record is not None:
