@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from mftcn_bench.rl.checkpoint_progress import CheckpointProgress, checkpoint_progress
 from mftcn_bench.rl.expert import ExpertPolicy, ensure_expert, state_env_factory
 from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
 from mftcn_bench.rl.suite_env import SuiteConfig
@@ -45,6 +46,8 @@ def test_killed_run_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
     with pytest.raises(Stop):
         _train(tmp_path / "b", stop_after=3)
     assert (tmp_path / "b" / "ppo_checkpoint.pt").exists()
+    # what `sweep status` reads of it: 3 batches of 80 frames, the third batch's training return
+    assert checkpoint_progress(tmp_path / "b") == CheckpointProgress(240, state_a.curve_return[2])
     nets_b, state_b = _train(tmp_path / "b")
     assert state_b.curve_return == state_a.curve_return and state_b.batch == 6
     assert torch.equal(_params(nets_a), _params(nets_b))
@@ -63,6 +66,7 @@ def test_truncated_checkpoint_is_refused_with_one_line(tmp_path):
     path.write_bytes(path.read_bytes()[:100])
     with pytest.raises(TrainingError, match="cannot be read"):
         _train(tmp_path)
+    assert checkpoint_progress(tmp_path) is None and checkpoint_progress(tmp_path / "none") is None
 
 
 def test_expert_is_trained_once_and_acts_like_the_trained_policy(tmp_path):

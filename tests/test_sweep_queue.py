@@ -43,6 +43,20 @@ def test_status_counts_done_running_left_and_estimates_the_time_left_from_finish
     assert queue_status(home, "grid", now=now).counts["running"] == 0, "the lock was released"
 
 
+def test_status_says_how_far_an_unfinished_runs_ppo_got_by_its_checkpoint(home):
+    """A running or killed control run's last checkpoint (`rl.checkpoint_progress`): its frames and the
+    last batch's training return; nothing for a run without one (not started, or no PPO)."""
+    import torch
+
+    queue = SweepQueue.open(home, "grid", GRID)
+    queue.jobs_changed(_jobs("r0", "r1", "r2", "r3"))
+    run_dir = home.runs / "r1"
+    run_dir.mkdir(parents=True)
+    torch.save({"state": {"frames": 2_320_000, "curve_return": [500.0, 528.75]}}, run_dir / "ppo_checkpoint.pt")
+    rows = queue_status(home, "grid").rows
+    assert [r["checkpointed"] for r in rows] == ["", "2.32 M frames, training return 529", "", ""]
+
+
 def test_without_a_finished_job_the_status_says_it_cannot_estimate(home):
     SweepQueue.open(home, "grid", GRID)  # recorded, not yet planned: the grid as requested
     status = queue_status(home, "grid")

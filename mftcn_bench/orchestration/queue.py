@@ -5,7 +5,8 @@ exports each record as it is stored (`--export DIR`); started again after the pr
 killed (`sweep --queue NAME`, the grid read back), the sweep skips finished runs and continues unfinished
 ones from their checkpoints (`run.runner`). `mftcn-bench sweep status --queue NAME` reads the file and the
 home: a job is done when the store holds its run id, running while a process holds the run's lock
-(`runs/.<id>.lock`), and its time left is estimated from the measured times of the queue's finished jobs.
+(`runs/.<id>.lock`), an unfinished control run shows the frames of its last PPO checkpoint, and the time
+left is estimated from the measured times of the queue's finished jobs.
 The file also holds the sweep's stage (data sets, encoder fits, runs: `SweepStage`) and which process
 drives it, so that the status can say how far the fits before the first run got, count their time left
 at the pace of those that did their work (a fit reused from an earlier start takes none and says nothing
@@ -31,6 +32,7 @@ from mftcn_bench.core.home import BenchHome
 from mftcn_bench.orchestration.sweep import SweepJob, SweepRequest, SweepStage
 from mftcn_bench.results.records_io import record_to_json
 from mftcn_bench.results.store import ResultStore, RunRecord
+from mftcn_bench.rl.checkpoint_progress import checkpoint_progress
 
 _GRID_KEYS = ("encoders", "tasks", "seeds", "preset", "overrides", "device", "deterministic")  # what a grid is
 
@@ -169,6 +171,15 @@ def _stage_progress(name: str, stage: dict[str, Any] | None, now: float,
     return f"now {what}", max(0.0, pace * (total - done) - (now - float(stage["updated_at"])))
 
 
+def _checkpointed(home: BenchHome, run_id: str | None) -> str:
+    """How far an unfinished run's PPO got by its last checkpoint ("" without one: not started, or no PPO)."""
+    progress = checkpoint_progress(home.runs / run_id) if run_id else None
+    if progress is None:
+        return ""
+    text = f"{progress.frames / 1e6:.2f} M frames"
+    return text if progress.last_return is None else f"{text}, training return {progress.last_return:.0f}"
+
+
 def _hours(seconds: float) -> str:
     hours, minutes = divmod(round(seconds / 60), 60)
     return f"{hours} h {minutes:02d} min"
@@ -242,6 +253,7 @@ def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueS
     stage, stage_left_s = _stage_progress(name, data.get("stage"), now, int(data["request"]["workers"]))
     rows = [{"encoder": j.encoder, "task": j.task, "seed": j.seed, "state": s, "run id": j.run_id or "-",
              "running for": f"{(now - since[id(j)]) / 60:.0f} min" if s == "running" else "",
+             "checkpointed": _checkpointed(home, j.run_id) if s in ("running", "left", "failed") else "",
              "error": (j.error or "") if s == "failed" else ""}
             for j, s in zip(jobs, states, strict=True)]
     counts = {state: states.count(state) for state in ("done", "running", "left", "failed")}
