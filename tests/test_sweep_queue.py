@@ -57,6 +57,18 @@ def test_status_says_how_far_an_unfinished_runs_ppo_got_by_its_checkpoint(home):
     assert [r["checkpointed"] for r in rows] == ["", "2.32 M frames, training return 529", "", ""]
 
 
+def test_the_time_left_counts_each_job_at_its_encoders_measured_time(home):
+    """a's jobs take 100 s, b's 400 s on the same task: a's job left takes 100 s, not the task's mean of 300."""
+    from mftcn_bench.results.store import ResultStore
+
+    queue = SweepQueue.open(home, "grid", GRID)
+    queue.jobs_changed(_jobs("r0", "r1", "r2", "r3"))
+    store = ResultStore(home.database)
+    for encoder, run_id, seconds in (("a", "r0", 100.0), ("b", "r2", 400.0), ("b", "r3", 400.0)):
+        store.put(replace(make_record(encoder, "t", 0, {"m": 1.0}), run_id=run_id, timings={"total_s": seconds}))
+    assert queue_status(home, "grid").left_s == pytest.approx(100 / 2)  # r1, a's, at two jobs at once
+
+
 def test_without_a_finished_job_the_status_says_it_cannot_estimate(home):
     SweepQueue.open(home, "grid", GRID)  # recorded, not yet planned: the grid as requested
     status = queue_status(home, "grid")

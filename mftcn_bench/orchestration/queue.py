@@ -6,7 +6,7 @@ killed (`sweep --queue NAME`, the grid read back), the sweep skips finished runs
 ones from their checkpoints (`run.runner`). `mftcn-bench sweep status --queue NAME` reads the file and the
 home: a job is done when the store holds its run id, running while a process holds the run's lock
 (`runs/.<id>.lock`), an unfinished control run shows the frames of its last PPO checkpoint, and the time
-left is estimated from the measured times of the queue's finished jobs.
+left is estimated from the measured times of the queue's finished jobs of the same encoder and task.
 The file also holds the sweep's stage (data sets, encoder fits, runs: `SweepStage`) and which process
 drives it, so that the status can say how far the fits before the first run got, count their time left
 at the pace of those that did their work (a fit reused from an earlier start takes none and says nothing
@@ -231,7 +231,8 @@ def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueS
         started = _running_since(home.runs / f".{job.run_id}.lock") if job.run_id else None
         if record is not None:
             state = "done"
-            measured.setdefault(job.task, []).append(float(record.timings.get("total_s", job.seconds)))
+            seconds = float(record.timings.get("total_s", job.seconds))
+            measured.setdefault((job.encoder, job.task), []).append(seconds)
         elif started is not None:
             state, since[id(job)] = "running", started
         elif job.status == "failed":
@@ -242,12 +243,15 @@ def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueS
     every = [s for times in measured.values() for s in times]
     left_s = None
     if every:
-        def expected(task: str) -> float:
-            times = measured.get(task, every)
+        def expected(job: SweepJob) -> float:
+            """The mean time of the finished jobs of its encoder and task, else of its task, else of all:
+            encoders' costs differ many times over (a random-state control run renders, true state does not)."""
+            times = measured.get((job.encoder, job.task)) or [
+                t for (_, task), ts in measured.items() if task == job.task for t in ts] or every
             return sum(times) / len(times)
 
-        work = sum(expected(j.task) for j, s in zip(jobs, states, strict=True) if s == "left")
-        work += sum(max(0.0, expected(j.task) - (now - since[id(j)]))
+        work = sum(expected(j) for j, s in zip(jobs, states, strict=True) if s == "left")
+        work += sum(max(0.0, expected(j) - (now - since[id(j)]))
                     for j, s in zip(jobs, states, strict=True) if s == "running")
         left_s = work / max(1, int(data["request"]["workers"]))
     stage, stage_left_s = _stage_progress(name, data.get("stage"), now, int(data["request"]["workers"]))
