@@ -141,6 +141,8 @@ def test_swingup_limits_counts_each_ppo_budget_as_its_own_row(tmp_path):
                         config=resolved("true-state-noisy", "swingup", [("encoder.model.noise_std", [0.1] * 5)])),
             make_record("mftcn5", "swingup-probe-state", 0, {"return_mean": 400.0, "return_std": 30.0},
                         config=resolved("mftcn5", "swingup-probe-state")),
+            make_record("mftcn1", "swingup-difference", 0, {"return_mean": 520.0, "return_std": 40.0},
+                        config=resolved("mftcn1", "swingup-difference")),
             make_record("pve", "swingup", 0, {"return_mean": 315.0, "return_std": 38.0},
                         config=resolved("pve", "swingup"))]
     for run in runs:
@@ -150,6 +152,8 @@ def test_swingup_limits_counts_each_ppo_budget_as_its_own_row(tmp_path):
     assert "839.00 (861.41)" in line_of(text, "| True state   ", "| 3 M ")
     assert "400.00 " in line_of(text, "the probe's predicted state", "| 1 M ")
     assert "- (701.30)" in line_of(text, "mfTCN5 e_t", "| 3 M ")
+    assert "520.00 " in line_of(text, "mfTCN1 [e_t, e_t - e_t-1]", "| 1 M ")
+    assert "| 0 " in line_of(text, "mfTCN1 [e_t, e_t - e_t-1]", "| 3 M ")
     assert "Left out: 1 stored run (1: older spec files or other overrides)" in text  # the other noise
     assert NOT_IN_PAPER not in text and "315.00" not in text  # another encoder's run is the swingup table's
     assert "Not shown: 1 counted run that no row covers (pve on swingup)." in text

@@ -201,10 +201,11 @@ SWINGUP_LIMITS = PaperTable(
         for label, encoder, task, budgets, paper in (
             ("True state", "true-state", "swingup", ("1 M", "3 M"), (861.41, 3.46)),
             ("True state + noise of mfTCN5's probe residual", "true-state-noisy", "swingup", ("1 M", "3 M"), None),
-            ("mfTCN5 -> the probe's predicted state", "mftcn5", "swingup-probe-state", ("1 M",), None),
-            ("mfTCN5 [e_t, e_t - e_t-1]", "mftcn5", "swingup-difference", ("1 M",), None),
+            ("mfTCN5 -> the probe's predicted state", "mftcn5", "swingup-probe-state", ("1 M", "3 M"), None),
+            ("mfTCN5 [e_t, e_t - e_t-1]", "mftcn5", "swingup-difference", ("1 M", "3 M"), None),
             ("mfTCN5 e_t", "mftcn5", "swingup", ("1 M", "3 M"), (701.30, 80.14)),
-            ("mfTCN1 e_t", "mftcn1", "swingup", ("1 M",), (550.98, 53.40)),
+            ("mfTCN1 [e_t, e_t - e_t-1]", "mftcn1", "swingup-difference", ("1 M", "3 M"), None),
+            ("mfTCN1 e_t", "mftcn1", "swingup", ("1 M", "3 M"), (550.98, 53.40)),
         )
         for budget in budgets),
     note="Runs of the quick preset (encoders trained on the quick dataset) with PPO's budget as the row says "
