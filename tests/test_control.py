@@ -95,7 +95,8 @@ def _test_returns_by_hand(task: str, record, run_dir) -> list[float]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("task", ["swingup-difference", "swingup-physics-rate-difference", "swingup-probe-state"])
+@pytest.mark.parametrize("task", ["swingup-difference", "swingup-physics-rate-difference", "swingup-probe-state",
+                                  "cheetah-difference"])
 def test_smoke_run_of_a_ppo_limit_analysis(control_home, task, capsys):
     """The PPO-limit variants run mftcn5 end to end; the probe-state one stores its readout's test R^2."""
     code = main(["run", "--encoder", "mftcn5", "--task", task, "--preset", "smoke", "--no-progress",

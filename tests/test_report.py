@@ -102,7 +102,7 @@ def test_latex_format_escapes_and_uses_pm(tmp_path):
 
 def test_every_table_renders_from_an_empty_store(tmp_path):
     text = report(ResultStore(tmp_path / "r.sqlite"), list(TABLES))
-    assert text.count("### ") == len(TABLES) == 9
+    assert text.count("### ") == len(TABLES) == 10
     assert "- (0.0198)" in text and "- (811.10)" in text and "- (8.9)" in text
 
 
@@ -179,6 +179,23 @@ def test_the_from_scratch_ablation_is_its_own_probe_row_and_other_overrides_are_
     assert ablation.seeds == 2 and ablation.stats[0].mean == pytest.approx(3.8) and ablation.paper is None
     (extra,) = [r for r in rows.values() if r.labels[0] == NOT_IN_PAPER]
     assert extra.encoder == "mftcn4 (train.lr=0.0001)" and extra.stats[0].mean == 5.0
+
+
+def test_cheetah_limits_sets_the_difference_input_beside_e_t_and_leaves_other_encoders_to_the_cheetah_table():
+    runs = [make_record("mftcn5", "cheetah-difference", seed, {"return_mean": 300.0 + 20 * seed, "return_std": 30.0},
+                        config=resolved("mftcn5", "cheetah-difference")) for seed in (0, 1)]
+    runs += [make_record("mftcn5", "cheetah", 0, {"return_mean": 280.0, "return_std": 25.0},
+                         config=resolved("mftcn5", "cheetah")),
+             make_record("random-state", "cheetah", 0, {"return_mean": 55.0, "return_std": 9.0},
+                         config=resolved("random-state", "cheetah"))]
+    table = TABLES["cheetah-limits"]
+    text = render(table, table_rows(table, runs, accept=accept_all))
+    difference = line_of(text, "| mfTCN5 [e_t, e_t - e_t-1] ")
+    assert "310.00 ± 14.14 " in difference and "| 2 " in difference
+    assert "280.00 (360.50)" in line_of(text, "| mfTCN5 e_t ")
+    assert "- (390.16)" in line_of(text, "True state")
+    assert NOT_IN_PAPER not in text and "55.00" not in text  # random state is the cheetah table's
+    assert "310.00" not in render(TABLES["cheetah"], table_rows(TABLES["cheetah"], runs, accept=accept_all))
 
 
 def test_a_3m_run_counts_in_the_3m_row_only_with_the_papers_test_episodes(tmp_path):

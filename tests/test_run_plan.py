@@ -26,6 +26,16 @@ def test_the_plan_says_whether_a_run_reads_data(encoder, task, reads):
     assert prepare(RunRequest(encoder, task, "smoke")).reads_data is reads
 
 
+def test_the_difference_variant_of_cheetah_shares_its_expert_data_and_fit_and_is_another_run():
+    """cheetah-difference changes only how the policy reads the embedding: the expert (on state), its
+    demonstrations and the encoder fit are cheetah's own; the run is not."""
+    plain, difference = (prepare(RunRequest("mftcn5", task, "paper", 0)) for task in ("cheetah", "cheetah-difference"))
+    assert difference.task.env_config.embedding_difference and not plain.task.env_config.embedding_difference
+    assert difference.dataset_key == plain.dataset_key
+    assert runner.encoder_key_of(difference, "data") == runner.encoder_key_of(plain, "data")
+    assert runner.run_id_of(difference, "data") != runner.run_id_of(plain, "data")
+
+
 def test_an_encoder_that_fits_nothing_collects_nothing_on_a_control_task(home):
     """true-state on swing-up and on cheetah: no dataset collected, no cheetah expert trained."""
     for task in ("swingup", "cheetah"):

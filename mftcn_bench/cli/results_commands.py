@@ -19,8 +19,8 @@ from mftcn_bench.core.fileio import atomic_write_bytes
 from mftcn_bench.core.home import BenchHome
 from mftcn_bench.core.specs import parse_override
 
-REPORT_CHOICES = ["probe", "swingup", "cheetah", "pouring", "pouring-attributes", "swingup-limits", "probe-streams",
-                  "swingup-streams", "imitate", "all"]
+REPORT_CHOICES = ["probe", "swingup", "cheetah", "pouring", "pouring-attributes", "swingup-limits",
+                  "cheetah-limits", "probe-streams", "swingup-streams", "imitate", "all"]
 PLOT_CHOICES = ["curves", "probe-lookback", "pouring-lookback"]
 
 

@@ -1,6 +1,7 @@
 """The paper's five result tables as data: rows (label, our encoder and task, a config filter), metric
-columns, and the paper's published figures; and one table of our own, `swingup-limits`, the PPO-limit
-analyses of issue 20 (what keeps PPO on an embedding below PPO on true state).
+columns, and the paper's published figures; and tables of our own: `swingup-limits` and `cheetah-limits`, the
+PPO-limit analyses of issues 20 and 36 (what keeps PPO on an embedding below PPO on true state), the streams
+of issue 34 and the behaviour cloning of issue 37.
 
 This module is the one place where the paper's numbers are written down (from
 "Learning Actionable Representations from Visual Observations", tables `table_regression`,
@@ -217,6 +218,24 @@ SWINGUP_LIMITS = PaperTable(
     other_runs=False,
 )
 
+# --- Not in the paper: what limits PPO on an embedding (cheetah) ------------------------------------------
+CHEETAH_LIMITS = PaperTable(
+    name="cheetah-limits",
+    title="What limits PPO on an embedding: cheetah, by policy input",
+    label_headers=("Input to PPO",),
+    columns=_RETURN_COLUMNS,
+    rows=tuple(PaperRow((label,), encoder, task, paper=paper) for label, encoder, task, paper in (
+        ("True state", "true-state", "cheetah", (390.16, 44.85)),
+        ("mfTCN5 [e_t, e_t - e_t-1]", "mftcn5", "cheetah-difference", None),
+        ("mfTCN5 e_t", "mftcn5", "cheetah", (360.50, 76.52)),
+    )),
+    note="The same PPO budget on every row (3 M frames, at both presets); the [e_t, e_t - e_t-1] row shares the "
+         "e_t row's expert, demonstrations and encoder fit (same preset and seed), so the rows differ only in "
+         "the policy's input. Other encoders' cheetah runs are in the cheetah table.",
+    decimals=2,
+    other_runs=False,
+)
+
 # --- Not in the paper: the encoder's stream of frames at the physics rate and at the agent rate (issue 34) --
 _PHYSICS, _AGENT = "physics rate (0.01 s)", "agent rate (0.08 s)"
 _PROBE_STREAMS = ((_PHYSICS, ""), (_AGENT, "-agent-rate"))  # label, task name suffix: the probe's default
@@ -273,4 +292,5 @@ IMITATE = PaperTable(
 )
 
 TABLES: dict[str, PaperTable] = {t.name: t for t in (PROBE, SWINGUP, CHEETAH, POURING, POURING_ATTRIBUTES,
-                                                     SWINGUP_LIMITS, PROBE_STREAMS, SWINGUP_STREAMS, IMITATE)}
+                                                     SWINGUP_LIMITS, CHEETAH_LIMITS, PROBE_STREAMS, SWINGUP_STREAMS,
+                                                     IMITATE)}

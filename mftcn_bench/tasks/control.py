@@ -21,7 +21,7 @@ control tasks it is no `tasks.base.OnlineTask`.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -227,12 +227,15 @@ class ExpertDemoControlTask(ControlTask):
         super().__init__(config, seed)
         self.expert_ppo = _table(PPOConfig, config["name"], "expert_ppo", config["expert_ppo"])
         self.expert_seed = int(config["dataset"]["seed"])
+        # The expert sees the state alone: how the policy reads the embedding (its difference) is not the expert's,
+        # so a variant that changes only that (cheetah-difference) shares the expert, its data and the fits.
+        self.expert_env = replace(self.env_config, embedding_difference=False)
         self._expert_path: Path | None = None
 
     @property
     def dataset_config(self) -> Mapping[str, Any]:
         # The expert's identity is part of the data's: another expert gives another dataset.
-        return {**self.config["dataset"], "expert": expert_key(self.env_config, self.expert_ppo, self.expert_seed)}
+        return {**self.config["dataset"], "expert": expert_key(self.expert_env, self.expert_ppo, self.expert_seed)}
 
     def prepare_artifacts(self, home: BenchHome, show_progress: bool = True) -> None:
         """Train (or find) the expert before the dataset is collected from it."""
@@ -247,7 +250,7 @@ class ExpertDemoControlTask(ControlTask):
             bar.refresh()
 
         try:
-            self._expert_path = ensure_expert(home.experts, self.env_config, self.expert_ppo, self.expert_seed,
+            self._expert_path = ensure_expert(home.experts, self.expert_env, self.expert_ppo, self.expert_seed,
                                               progress)
         finally:
             bar.close()
@@ -255,4 +258,4 @@ class ExpertDemoControlTask(ControlTask):
     @property
     def collector(self) -> Collector:
         # Before prepare_artifacts it has no expert: it keys the dataset, and refuses to collect.
-        return ExpertDemoCollector(self._expert_path, self.env_config, self.expert_ppo)
+        return ExpertDemoCollector(self._expert_path, self.expert_env, self.expert_ppo)
