@@ -128,7 +128,7 @@ def test_bench_command_prints_and_writes_the_table(tmp_path, capsys):
     text = out.read_text()
     assert text.startswith("# mftcn-bench bench (quick)") and "cores" in text and "| figure" in text
     # The row as written agrees with itself: ratio = value / reference (both in ms, 3 significant figures
-    # printed, the ratio to 2 decimals), and met is the target applied to that ratio.
+    # printed, the ratio to 2 decimals), and met is the target applied to the unrounded ratio.
     [line] = [line for line in text.splitlines() if line.startswith("| streaming mfTCN step")]
     _, value, reference, ratio, target, met = (cell.strip() for cell in line.strip("|").split("|"))
     assert value.endswith(" ms") and reference.startswith("lookback 1: ") and reference.endswith(" ms")
@@ -136,7 +136,10 @@ def test_bench_command_prints_and_writes_the_table(tmp_path, capsys):
                             for cell in (value, reference.removeprefix("lookback 1: ")))
     shown = float(ratio.removesuffix("x"))
     assert shown == pytest.approx(cost / reference_cost, rel=0.012, abs=0.006)
-    assert target == "<= 1.3x the cost" and met == ("yes" if shown <= 1.3 else "NO")
+    assert target == "<= 1.3x the cost" and met in ("yes", "NO")
+    # met is decided on the unrounded ratio, so a shown 1.30x may be either side of the bound.
+    if abs(shown - 1.3) > 0.005:
+        assert met == ("yes" if shown < 1.3 else "NO")
 
 
 @pytest.mark.parametrize(("rates", "cost", "reference_cost", "ratio", "met"),
