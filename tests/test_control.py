@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from mftcn_bench.cli import main
+from mftcn_bench.orchestration.queue import PPO_FRAMES_METRIC, PPO_WALL_METRIC
 from mftcn_bench.results.store import ResultStore
 
 ENCODERS = ["true-state", "random-state", "pixels-cnn", "mftcn5"]
@@ -36,7 +37,8 @@ def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encod
     # frames; training runs whole batches until `frames`; the test has `eval_episodes` episodes.
     batch_frames = ppo["num_envs"] * ppo["episodes_per_batch"] * env["episode_length"]
     batches = math.ceil(ppo["frames"] / batch_frames)
-    assert metrics["episodes"] == ppo["eval_episodes"] and metrics["frames"] == batches * batch_frames
+    assert metrics["episodes"] == ppo["eval_episodes"] and metrics[PPO_FRAMES_METRIC] == batches * batch_frames
+    assert 0 < metrics[PPO_WALL_METRIC] <= record.timings["total_s"]  # the clock `sweep status` counts a resumed run by
     test_returns = np.asarray(record.curves["test"]["return"])  # every test episode's return is kept
     assert len(test_returns) == ppo["eval_episodes"] and metrics["return_mean"] == pytest.approx(test_returns.mean())
     assert metrics["return_std"] == pytest.approx(test_returns.std(ddof=1))

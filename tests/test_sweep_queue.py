@@ -10,7 +10,13 @@ from dataclasses import replace
 import pytest
 
 from mftcn_bench.core.fileio import exclusive_lock
-from mftcn_bench.orchestration.queue import QueueError, SweepQueue, queue_status
+from mftcn_bench.orchestration.queue import (
+    PPO_FRAMES_METRIC,
+    PPO_WALL_METRIC,
+    QueueError,
+    SweepQueue,
+    queue_status,
+)
 from mftcn_bench.orchestration.sweep import SweepJob, SweepRequest, SweepStage
 from tests.records import make_record
 
@@ -67,6 +73,44 @@ def test_the_time_left_counts_each_job_at_its_encoders_measured_time(home):
     for encoder, run_id, seconds in (("a", "r0", 100.0), ("b", "r2", 400.0), ("b", "r3", 400.0)):
         store.put(replace(make_record(encoder, "t", 0, {"m": 1.0}), run_id=run_id, timings={"total_s": seconds}))
     assert queue_status(home, "grid").left_s == pytest.approx(100 / 2)  # r1, a's, at two jobs at once
+
+
+def test_a_resumed_run_counts_its_ppo_clock_over_every_process(home):
+    """A control run finished by a second process has timings of that process only (394 s here); its PPO
+    clock, kept in the checkpoint, counts every process (2,004 s), so the job's cost is the clock's."""
+    from mftcn_bench.results.store import ResultStore
+
+    queue = SweepQueue.open(home, "grid", GRID)
+    queue.jobs_changed(_jobs("r0", "r1", "r2", "r3"))
+    metrics = {"return_mean": 315.0, PPO_WALL_METRIC: 2004.0, PPO_FRAMES_METRIC: 3_008_000.0}
+    timings = {"dataset_s": 1.0, "fit_s": 0.0, "evaluate_s": 393.0, "total_s": 394.0}
+    ResultStore(home.database).put(replace(make_record("a", "t", 0, metrics), run_id="r0", timings=timings))
+    status = queue_status(home, "grid")
+    assert status.left_s == pytest.approx(3 * 2005.0 / 2)  # r1, r2, r3 at a's measured cost, two at once
+
+
+def test_an_unfinished_run_counts_the_frames_past_its_checkpoint(home):
+    """r1 runs again from a checkpoint at half its frames and r2 waits at 80%: they have half and a fifth
+    of a finished run's 1,000 s to go, whatever the lock's age says (a resumed run's clock restarts)."""
+    import torch
+
+    from mftcn_bench.results.store import ResultStore
+
+    queue = SweepQueue.open(home, "grid", GRID)
+    queue.jobs_changed(_jobs("r0", "r1", "r2", "r3"))
+    metrics = {"return_mean": 600.0, PPO_WALL_METRIC: 900.0, PPO_FRAMES_METRIC: 3_000_000.0}
+    ResultStore(home.database).put(replace(make_record("a", "t", 0, metrics), run_id="r0",
+                                           timings={"total_s": 1000.0}))
+    for run_id, frames in (("r1", 1_500_000), ("r2", 2_400_000)):
+        (home.runs / run_id).mkdir(parents=True)
+        torch.save({"state": {"frames": frames, "curve_return": [500.0]}}, home.runs / run_id / "ppo_checkpoint.pt")
+    now = 1_000_000.0
+    lock = home.runs / ".r1.lock"
+    with exclusive_lock(lock):  # running for 10 s since this process took it
+        os.utime(lock, (now - 10, now - 10))
+        status = queue_status(home, "grid", now=now)
+    assert [r["state"] for r in status.rows] == ["done", "running", "left", "left"]
+    assert status.left_s == pytest.approx((500 + 200 + 1000) / 2)
 
 
 def test_without_a_finished_job_the_status_says_it_cannot_estimate(home):

@@ -6,7 +6,8 @@ killed (`sweep --queue NAME`, the grid read back), the sweep skips finished runs
 ones from their checkpoints (`run.runner`). `mftcn-bench sweep status --queue NAME` reads the file and the
 home: a job is done when the store holds its run id, running while a process holds the run's lock
 (`runs/.<id>.lock`), an unfinished control run shows the frames of its last PPO checkpoint, and the time
-left is estimated from the measured times of the queue's finished jobs of the same encoder and task.
+left is estimated from the measured times of the queue's finished jobs of the same encoder and task, an
+unfinished control run counted for the part of its PPO frames its checkpoint has still to train.
 The file also holds the sweep's stage (data sets, encoder fits, runs: `SweepStage`) and which process
 drives it, so that the status can say how far the fits before the first run got, count their time left
 at the pace of those that did their work (a fit reused from an earlier start takes none and says nothing
@@ -32,9 +33,12 @@ from mftcn_bench.core.home import BenchHome
 from mftcn_bench.orchestration.sweep import SweepJob, SweepRequest, SweepStage
 from mftcn_bench.results.records_io import record_to_json
 from mftcn_bench.results.store import ResultStore, RunRecord
-from mftcn_bench.rl.checkpoint_progress import checkpoint_progress
+from mftcn_bench.rl.checkpoint_progress import CheckpointProgress, checkpoint_progress
 
 _GRID_KEYS = ("encoders", "tasks", "seeds", "preset", "overrides", "device", "deterministic")  # what a grid is
+# A control run's metrics (`tasks.control`): PPO's own clock, summed over every process that trained it (a run
+# resumed from its checkpoint has timings of its last process only), and the frames it trained.
+PPO_WALL_METRIC, PPO_FRAMES_METRIC = "train_wall_s", "frames"
 
 
 class QueueError(SpecError):
@@ -171,9 +175,19 @@ def _stage_progress(name: str, stage: dict[str, Any] | None, now: float,
     return f"now {what}", max(0.0, pace * (total - done) - (now - float(stage["updated_at"])))
 
 
-def _checkpointed(home: BenchHome, run_id: str | None) -> str:
+def _job_seconds(record: RunRecord, fallback: float) -> float:
+    """What a finished job cost: its record's total time or, for a run resumed from its PPO checkpoint
+    (whose timings cover the last process only), its data and fit times plus PPO's clock over every process."""
+    total = float(record.timings.get("total_s", fallback))
+    ppo_wall = record.metrics.get(PPO_WALL_METRIC)
+    if ppo_wall is None:
+        return total
+    return max(total, float(record.timings.get("dataset_s", 0.0)) + float(record.timings.get("fit_s", 0.0))
+               + float(ppo_wall))
+
+
+def _checkpointed(progress: CheckpointProgress | None) -> str:
     """How far an unfinished run's PPO got by its last checkpoint ("" without one: not started, or no PPO)."""
-    progress = checkpoint_progress(home.runs / run_id) if run_id else None
     if progress is None:
         return ""
     text = f"{progress.frames / 1e6:.2f} M frames"
@@ -225,14 +239,15 @@ def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueS
         request = request_from_json(data["request"])
         jobs = [SweepJob(e, t, s, request.preset or "-") for e in request.encoders for t in request.tasks
                 for s in request.seeds]
-    states, measured, since = [], {}, {}
+    states, measured, since, task_frames = [], {}, {}, {}
     for job in jobs:
         record = store.get(job.run_id) if job.run_id else None
         started = _running_since(home.runs / f".{job.run_id}.lock") if job.run_id else None
         if record is not None:
             state = "done"
-            seconds = float(record.timings.get("total_s", job.seconds))
-            measured.setdefault((job.encoder, job.task), []).append(seconds)
+            measured.setdefault((job.encoder, job.task), []).append(_job_seconds(record, job.seconds))
+            if PPO_FRAMES_METRIC in record.metrics and PPO_WALL_METRIC in record.metrics:
+                task_frames[job.task] = max(task_frames.get(job.task, 0.0), float(record.metrics[PPO_FRAMES_METRIC]))
         elif started is not None:
             state, since[id(job)] = "running", started
         elif job.status == "failed":
@@ -240,6 +255,8 @@ def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueS
         else:
             state = "left"
         states.append(state)
+    progress = {id(j): checkpoint_progress(home.runs / j.run_id) if j.run_id and s != "done" else None
+                for j, s in zip(jobs, states, strict=True)}
     every = [s for times in measured.values() for s in times]
     left_s = None
     if every:
@@ -250,14 +267,21 @@ def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueS
                 t for (_, task), ts in measured.items() if task == job.task for t in ts] or every
             return sum(times) / len(times)
 
-        work = sum(expected(j) for j, s in zip(jobs, states, strict=True) if s == "left")
-        work += sum(max(0.0, expected(j) - (now - since[id(j)]))
-                    for j, s in zip(jobs, states, strict=True) if s == "running")
-        left_s = work / max(1, int(data["request"]["workers"]))
+        def remaining(job: SweepJob, state: str) -> float:
+            """A job's time still to go: the part of its PPO frames past its checkpoint when it has one and
+            a finished run of its task says how many it trains (a resumed run's clock started at the
+            checkpoint, not at 0), else what is left of its expected time."""
+            checkpoint, frames = progress[id(job)], task_frames.get(job.task)
+            if checkpoint is not None and frames:
+                return expected(job) * max(0.0, 1.0 - checkpoint.frames / frames)
+            return max(0.0, expected(job) - (now - since[id(job)])) if state == "running" else expected(job)
+
+        left_s = sum(remaining(j, s) for j, s in zip(jobs, states, strict=True) if s in ("left", "running"))
+        left_s /= max(1, int(data["request"]["workers"]))
     stage, stage_left_s = _stage_progress(name, data.get("stage"), now, int(data["request"]["workers"]))
     rows = [{"encoder": j.encoder, "task": j.task, "seed": j.seed, "state": s, "run id": j.run_id or "-",
              "running for": f"{(now - since[id(j)]) / 60:.0f} min" if s == "running" else "",
-             "checkpointed": _checkpointed(home, j.run_id) if s in ("running", "left", "failed") else "",
+             "checkpointed": _checkpointed(progress[id(j)]),
              "error": (j.error or "") if s == "failed" else ""}
             for j, s in zip(jobs, states, strict=True)]
     counts = {state: states.count(state) for state in ("done", "running", "left", "failed")}
