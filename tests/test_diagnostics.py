@@ -80,3 +80,27 @@ def test_random_action_episodes_need_a_task_with_demonstrations(smoke_home):
                      "--random-episodes", "1")
     assert done.returncode != 0
     assert "needs a task whose dataset is an expert's demonstrations" in done.stderr
+
+
+@pytest.mark.parametrize(("height", "width"), [(160, 160), (48, 96)])
+def test_camera_coverage_agrees_with_the_segmentation_render(height, width):
+    coverage = load("camera_coverage")
+    physics = coverage.cartpole_physics()
+    # x in m, theta in rad: in the middle, near and past the square image's edge (the cart is cut beyond
+    # |x| = 1.40 at 160x160), the pole along the rail towards the edge and upright
+    states = np.array([[0.0, 0.0], [1.0, 0.0], [1.5, 0.0], [-1.8, 0.0], [1.0, np.pi / 2], [-0.3, -np.pi / 2]])
+    seen = coverage.coverage(physics, "fixed", height, width, states)
+    cart, pole = physics.model.name2id("cart", "geom"), physics.model.name2id("pole_1", "geom")
+    for index, (x, theta) in enumerate(states):
+        physics.data.qpos[:] = (x, theta)
+        physics.forward()
+        geoms = physics.render(height, width, camera_id="fixed", segmentation=True)[..., 0]
+        edge = np.concatenate([geoms[0], geoms[-1], geoms[:, 0], geoms[:, -1]])
+        # cut or out of the image altogether
+        assert seen.cart_cut[index] == (cart in edge or cart not in geoms), (x, theta)
+        assert seen.tip_out[index] == (pole in edge or pole not in geoms), (x, theta)
+    if width == 160:
+        assert seen.cart_cut.tolist() == [False, False, True, True, False, False]
+        assert seen.tip_out.tolist() == [False, False, False, True, True, False]
+    else:
+        assert not seen.cart_cut.any() and not seen.tip_out.any()
