@@ -104,3 +104,21 @@ def test_camera_coverage_agrees_with_the_segmentation_render(height, width):
         assert seen.tip_out.tolist() == [False, False, False, True, True, False]
     else:
         assert not seen.cart_cut.any() and not seen.tip_out.any()
+
+
+def test_policy_cart_range_replays_the_runs_own_test_episodes(tmp_path):
+    home = {**os.environ, "MFTCN_BENCH_HOME": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", "import sys; from mftcn_bench.cli import main; sys.exit(main())",
+                           "run", "--encoder", "true-state", "--task", "swingup", "--preset", "smoke", "--no-progress"],
+                          capture_output=True, text=True, timeout=600, env=home)
+    assert done.returncode == 0, done.stderr
+    done = subprocess.run([sys.executable, str(DIAGNOSTICS / "policy_cart_range.py"), "--encoder", "true-state",
+                           "--task", "swingup", "--preset", "smoke", "--episodes", "2"],
+                          capture_output=True, text=True, timeout=600, env=home)
+    assert done.returncode == 0, done.stderr
+    replayed = re.search(r"returns replayed: (.*)", done.stdout).group(1).split()
+    stored = re.search(r"returns stored: +(.*)", done.stdout).group(1).split()
+    assert len(replayed) == len(stored) == 2 and replayed == stored, done.stdout
+    # 2 episodes of 80 physics steps at action repeat 8: 10 agent steps and the first frame each
+    assert "2 test episodes, 22 frames" in done.stdout, done.stdout
+    assert re.search(r"fixed at 96x48: cart cut by the edge 0\.000", done.stdout), done.stdout
