@@ -6,8 +6,8 @@ eight corners, its centre and the pole's tip through each camera of the dataset 
 camera, the fraction of frames in which the cart is cut by the image's edge, its centre is outside the image,
 and the pole's tip is outside it, with the distribution of |x|. Geometry only, nothing is rendered, so a
 dataset of 180,000 frames takes seconds; tests/test_diagnostics.py checks it against MuJoCo's segmentation
-render. Used to explain why the fixed camera at 160x160 (a square image, so half of 96x48's horizontal
-field) does not lift the swing-up rows as it does in the paper (docs/RESULTS.md).
+render. Used to ask whether the fixed camera at 160x160 (a square image, so half of 96x48's horizontal
+field) is why the swing-up rows do not gain from the resolution as the paper's do (docs/RESULTS.md).
 
     python docs/diagnostics/camera_coverage.py $MFTCN_BENCH_HOME/datasets/cartpole-agent-rate-<id>
 """
@@ -34,7 +34,8 @@ class Coverage:
     tip_out: np.ndarray
 
 
-def cartpole_physics():
+def cartpole_physics():  # -> dm_control.mujoco.Physics, imported after `ensure_gl` picks the GL back end
+    """The suite's cartpole physics (swing-up's model: the same cameras and geoms as the datasets')."""
     ensure_gl()
     from dm_control import suite
 

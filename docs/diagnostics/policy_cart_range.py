@@ -1,12 +1,13 @@
 """Diagnostic: where do a finished cartpole run's test episodes take the cart, and does its camera see it?
 
 Loads the encoder and the final PPO networks of a finished run (`mftcn-bench run --encoder E --task T
---preset P --seed S`, its folder `runs/<id>` in the home), plays `--episodes` test episodes with the policy's
-mean action on the test's environments (the run's own evaluation seeds, so the returns printed should be the
-record's first test returns), records the cart's position and the pole's angle at every frame of the stream,
-and prints the distribution of |x| and how often the task's camera cuts the cart or the pole
-(`camera_coverage.py`, beside this file). Used to tell whether the fixed camera's square 160x160 image, which
-cuts the cart in most frames of the random-action data, also cuts it where the policy drives it.
+--preset P --seed S`, its folder `runs/<id>` in the home), plays at least `--episodes` test episodes (whole
+rounds of up to the test's number of environments) with the policy's mean action on the test's environments
+(the run's own evaluation seeds, so the returns printed should be the record's first test returns), records
+the cart's position and the pole's angle at every frame of the stream, and prints the distribution of |x| and
+how often the task's camera cuts the cart or the pole (`camera_coverage.py`, beside this file). Used to tell
+whether the fixed camera's square 160x160 image, which cuts the cart in most frames of the random-action data,
+also cuts it where the policy drives it.
 
     MFTCN_BENCH_HOME=... python docs/diagnostics/policy_cart_range.py --encoder mftcn5 --task swingup-160 \
         --preset paper --seed 0 [--episodes 8]
