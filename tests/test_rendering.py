@@ -1,3 +1,5 @@
+import ctypes
+
 import numpy as np
 import pytest
 
@@ -74,9 +76,33 @@ def test_a_cuda_device_renders_on_the_egl_device_that_drives_it(monkeypatch):
 
 
 def test_the_egl_queries_load_here():
-    """The real queries resolve on this machine's EGL (Mesa): the device list is readable, and no Mesa device
-    claims a CUDA index."""
+    """The real queries resolve on this machine's EGL: the device list is readable; no Mesa device claims a
+    CUDA index, and on an NVIDIA machine (the device check) the first GPU's device claims cuda:0."""
     devices, attribute = rendering._egl_device_queries()
     found = devices()
     assert len(found) >= 1
-    assert all(attribute(device, rendering.EGL_CUDA_DEVICE_NV) is None for device in found)
+    claimed = [attribute(device, rendering.EGL_CUDA_DEVICE_NV) for device in found]
+    if "NVIDIA" in rendering.gl_renderer():
+        assert 0 in claimed and rendering.egl_device_of_cuda(0) == claimed.index(0)
+    else:
+        assert all(index is None for index in claimed)
+
+
+def test_the_device_attribute_query_reads_an_intptr_through_ctypes():
+    """The real ctypes path of eglQueryDeviceAttribEXT against a C callback in its place: the answer comes
+    back through an EGLAttrib (intptr_t) out-parameter, and a refusal (EGL_FALSE) reads as None. PyOpenGL's
+    own `EGL.EGLAttrib` is a pointer type, which made every NVIDIA device's lookup fail on the H200."""
+    seen = []
+
+    @ctypes.CFUNCTYPE(ctypes.c_uint32, ctypes.c_void_p, ctypes.c_int32, ctypes.POINTER(ctypes.c_ssize_t))
+    def fake_query(device, name, value):
+        seen.append(name)
+        if name != rendering.EGL_CUDA_DEVICE_NV:
+            return 0
+        value[0] = 3
+        return 1
+
+    attribute = rendering.device_attribute_query(ctypes.cast(fake_query, ctypes.c_void_p).value)
+    assert attribute(None, rendering.EGL_CUDA_DEVICE_NV) == 3
+    assert attribute(None, 0x322C) is None
+    assert seen == [rendering.EGL_CUDA_DEVICE_NV, 0x322C]

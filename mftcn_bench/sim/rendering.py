@@ -9,6 +9,7 @@ cameras, geometry and sky (docs/PERFORMANCE.md has the measured breakdown).
 
 from __future__ import annotations
 
+import ctypes
 import ctypes.util
 import os
 from collections.abc import Callable, Mapping, Sequence
@@ -85,19 +86,24 @@ def egl_device_of_cuda(cuda_index: int, queries: DeviceQueries | None = None) ->
 def _egl_device_queries() -> DeviceQueries:
     """EGL_EXT_device_enumeration and EGL_EXT_device_query through dm_control's EGL wrappers (PyOpenGL's
     `OpenGL.EGL` does not export the two extension functions); raises where EGL lacks them."""
-    import ctypes
-
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     from dm_control._render.pyopengl import egl_ext as EGL
 
-    query = ctypes.CFUNCTYPE(EGL.EGLBoolean, EGL.EGLDeviceEXT, EGL.EGLint, ctypes.POINTER(EGL.EGLAttrib))(
-        EGL.eglGetProcAddress("eglQueryDeviceAttribEXT"))
+    return EGL.eglQueryDevicesEXT, device_attribute_query(EGL.eglGetProcAddress("eglQueryDeviceAttribEXT"),
+                                                          EGL.EGLDeviceEXT)
+
+
+def device_attribute_query(address: Any, device_type: Any = ctypes.c_void_p) -> Callable[[object, int], int | None]:
+    """eglQueryDeviceAttribEXT at `address` as (device, attribute) -> its value, or None where the device
+    has no such attribute. The value is an EGLAttrib, which EGL defines as intptr_t: PyOpenGL's
+    `EGL.EGLAttrib` is a pointer type with no `.value`, so the lookup failed on every NVIDIA device."""
+    query = ctypes.CFUNCTYPE(ctypes.c_uint32, device_type, ctypes.c_int32, ctypes.POINTER(ctypes.c_ssize_t))(address)
 
     def attribute(device: object, name: int) -> int | None:
-        value = EGL.EGLAttrib()
+        value = ctypes.c_ssize_t()
         return int(value.value) if query(device, name, ctypes.byref(value)) else None
 
-    return EGL.eglQueryDevicesEXT, attribute
+    return attribute
 
 
 def ensure_gl() -> str:
