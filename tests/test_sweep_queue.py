@@ -43,8 +43,8 @@ def test_status_counts_done_running_left_and_estimates_the_time_left_from_finish
         status = queue_status(home, "grid", now=now)
     assert status.counts == {"done": 2, "running": 1, "left": 1, "failed": 0}
     assert [r["state"] for r in status.rows] == ["done", "done", "running", "left"]
-    # A job of task t takes 200 s (the mean of the finished): r2 has 150 s to go, r3 200 s, at 2 jobs at once.
-    assert status.left_s == pytest.approx((150 + 200) / 2)
+    # A job of task t takes 200 s (the mean of the finished): r2 has 150 s to go, r3 200 s on the free worker.
+    assert status.left_s == pytest.approx(200)
     assert "2 done, 1 running, 1 left, 0 failed; about 0 h 03 min left at 2 job(s) at once" in status.summary()
     assert queue_status(home, "grid", now=now).counts["running"] == 0, "the lock was released"
 
@@ -72,7 +72,7 @@ def test_the_time_left_counts_each_job_at_its_encoders_measured_time(home):
     store = ResultStore(home.database)
     for encoder, run_id, seconds in (("a", "r0", 100.0), ("b", "r2", 400.0), ("b", "r3", 400.0)):
         store.put(replace(make_record(encoder, "t", 0, {"m": 1.0}), run_id=run_id, timings={"total_s": seconds}))
-    assert queue_status(home, "grid").left_s == pytest.approx(100 / 2)  # r1, a's, at two jobs at once
+    assert queue_status(home, "grid").left_s == pytest.approx(100)  # r1, a's, alone on one of two workers
 
 
 def test_a_resumed_run_counts_its_ppo_clock_over_every_process(home):
@@ -86,7 +86,7 @@ def test_a_resumed_run_counts_its_ppo_clock_over_every_process(home):
     timings = {"dataset_s": 1.0, "fit_s": 0.0, "evaluate_s": 393.0, "total_s": 394.0}
     ResultStore(home.database).put(replace(make_record("a", "t", 0, metrics), run_id="r0", timings=timings))
     status = queue_status(home, "grid")
-    assert status.left_s == pytest.approx(3 * 2005.0 / 2)  # r1, r2, r3 at a's measured cost, two at once
+    assert status.left_s == pytest.approx(2 * 2005.0)  # r1, r2, r3 at a's measured cost: r3 after r1 or r2
 
 
 def test_an_unfinished_run_counts_the_frames_past_its_checkpoint(home):
@@ -110,7 +110,8 @@ def test_an_unfinished_run_counts_the_frames_past_its_checkpoint(home):
         os.utime(lock, (now - 10, now - 10))
         status = queue_status(home, "grid", now=now)
     assert [r["state"] for r in status.rows] == ["done", "running", "left", "left"]
-    assert status.left_s == pytest.approx((500 + 200 + 1000) / 2)
+    # r1 holds a worker for 500 s; r2 (200 s) then r3 (1,000 s) take the other: 1,200 s, not (500+200+1000)/2.
+    assert status.left_s == pytest.approx(200 + 1000)
 
 
 def test_without_a_finished_job_the_status_says_it_cannot_estimate(home):
@@ -160,7 +161,7 @@ def test_status_counts_the_fits_before_the_first_run_at_their_measured_pace(home
     _set_stage(home, updated_at=now - 60)
     status = queue_status(home, "grid", now=now)
     assert status.stage_left_s == pytest.approx(240 * 5 / 2 - 60)
-    assert status.left_s == pytest.approx(3 * 100 / 2)  # the runs: three left of 100 s, two at once
+    assert status.left_s == pytest.approx(2 * 100)  # the runs: three left of 100 s, two at once
     assert ("1 done, 0 running, 3 left, 0 failed; now fitting encoders, 3 of 8 done, about 0 h 09 min left for "
             "them; about 0 h 12 min left at 2 job(s) at once") in status.summary()
 
@@ -175,3 +176,17 @@ def test_status_tells_a_stopped_queue_from_a_running_one(home):
     _set_stage(home, pid=ended.pid)
     assert ("stopped while fitting encoders, 3 of 8 done; `mftcn-bench sweep --queue grid` continues it"
             in queue_status(home, "grid").summary())
+
+
+@pytest.mark.parametrize(("running", "left", "workers", "expected"), [
+    ([6120.0, 15120.0], [], 2, 15120.0),        # the tail of a queue: the longest job, not the mean
+    ([], [100.0, 100.0, 100.0], 2, 200.0),      # the third starts when the first worker frees
+    ([50.0], [100.0, 30.0], 2, 100.0),          # 100 on the free worker; 30 after the running one's 50
+    ([], [100.0, 100.0], 1, 200.0),
+    ([], [], 2, 0.0),
+    ([10.0, 20.0, 30.0], [5.0], 2, 30.0),       # more running than workers (a restart with fewer)
+])
+def test_the_time_left_is_the_makespan_of_the_workers_taking_jobs_in_order(running, left, workers, expected):
+    from mftcn_bench.orchestration.queue import _makespan
+
+    assert _makespan(running, left, workers) == pytest.approx(expected)

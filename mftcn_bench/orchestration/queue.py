@@ -7,7 +7,8 @@ ones from their checkpoints (`run.runner`). `mftcn-bench sweep status --queue NA
 home: a job is done when the store holds its run id, running while a process holds the run's lock
 (`runs/.<id>.lock`), an unfinished control run shows the frames of its last PPO checkpoint, and the time
 left is estimated from the measured times of the queue's finished jobs of the same encoder and task, an
-unfinished control run counted for the part of its PPO frames its checkpoint has still to train.
+unfinished control run counted for the part of its PPO frames its checkpoint has still to train, as the
+wall time until the last job ends with the queue's workers taking the jobs left in order.
 The file also holds the sweep's stage (data sets, encoder fits, runs: `SweepStage`) and which process
 drives it, so that the status can say how far the fits before the first run got, count their time left
 at the pace of those that did their work (a fit reused from an earlier start takes none and says nothing
@@ -17,6 +18,7 @@ of it), and tell a stopped queue from a running one.
 from __future__ import annotations
 
 import fcntl
+import heapq
 import json
 import os
 import socket
@@ -186,6 +188,17 @@ def _job_seconds(record: RunRecord, fallback: float) -> float:
                + float(ppo_wall))
 
 
+def _makespan(running: Sequence[float], left: Sequence[float], workers: int) -> float:
+    """The wall time until the last job ends: each running job holds a worker for its time left, and the
+    jobs left start in order on the first worker to come free (the pool's order). Not the sum over the
+    workers: two jobs of 1.7 h and 4.2 h left on two workers take 4.2 h, not 3 h."""
+    ends = sorted(running) + [0.0] * max(0, max(1, workers) - len(running))
+    heapq.heapify(ends)
+    for seconds in left:
+        heapq.heappush(ends, heapq.heappop(ends) + seconds)
+    return max(ends, default=0.0)
+
+
 def _checkpointed(progress: CheckpointProgress | None) -> str:
     """How far an unfinished run's PPO got by its last checkpoint ("" without one: not started, or no PPO)."""
     if progress is None:
@@ -276,8 +289,9 @@ def queue_status(home: BenchHome, name: str, now: float | None = None) -> QueueS
                 return expected(job) * max(0.0, 1.0 - checkpoint.frames / frames)
             return max(0.0, expected(job) - (now - since[id(job)])) if state == "running" else expected(job)
 
-        left_s = sum(remaining(j, s) for j, s in zip(jobs, states, strict=True) if s in ("left", "running"))
-        left_s /= max(1, int(data["request"]["workers"]))
+        left_s = _makespan([remaining(j, s) for j, s in zip(jobs, states, strict=True) if s == "running"],
+                           [remaining(j, s) for j, s in zip(jobs, states, strict=True) if s == "left"],
+                           int(data["request"]["workers"]))
     stage, stage_left_s = _stage_progress(name, data.get("stage"), now, int(data["request"]["workers"]))
     rows = [{"encoder": j.encoder, "task": j.task, "seed": j.seed, "state": s, "run id": j.run_id or "-",
              "running for": f"{(now - since[id(j)]) / 60:.0f} min" if s == "running" else "",
