@@ -127,7 +127,7 @@ from mftcn_bench.core.device import resolve_device
 print('mujoco', mujoco.__version__, 'torchrl', torchrl.__version__, 'tensordict', tensordict.__version__)
 print('renderer:', gl_renderer()); print('EGL device of cuda:0:', egl_device_of_cuda(0))
 print('device:', resolve_device('auto'))"
-  step tests 100 "$py" -m pytest -q -p no:cacheprovider -o addopts="" tests/test_cuda.py tests/test_device.py -k "not smoke_runs"
+  step tests 100 "$py" -m pytest -q -p no:cacheprovider -o addopts="" tests/test_cuda.py tests/test_device.py tests/test_rendering.py -k "not smoke_runs"
   step "check mftcn5" 45 "$py" -m mftcn_bench.cli check encoder mftcn5 --device cuda
   step "check pve" 45 "$py" -m mftcn_bench.cli check encoder pve --device cuda
   for job in "mftcn5 cartpole-probe" "mftcn5 swingup" "mftcn1 pouring"; do
