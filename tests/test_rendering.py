@@ -90,8 +90,8 @@ def test_the_egl_queries_load_here():
 
 def test_the_device_attribute_query_reads_an_intptr_through_ctypes():
     """The real ctypes path of eglQueryDeviceAttribEXT against a C callback in its place: the answer comes
-    back through an EGLAttrib (intptr_t) out-parameter, and a refusal (EGL_FALSE) reads as None. PyOpenGL's
-    own `EGL.EGLAttrib` is a pointer type, which made every NVIDIA device's lookup fail on the H200."""
+    back through an EGLAttrib (intptr_t) out-parameter, and a refusal (EGL_FALSE) reads as None. Mesa refuses
+    the attribute, so only this reaches the path an NVIDIA driver takes on a CPU machine."""
     seen = []
 
     @ctypes.CFUNCTYPE(ctypes.c_uint32, ctypes.c_void_p, ctypes.c_int32, ctypes.POINTER(ctypes.c_ssize_t))

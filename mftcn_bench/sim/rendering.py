@@ -95,8 +95,8 @@ def _egl_device_queries() -> DeviceQueries:
 
 def device_attribute_query(address: Any, device_type: Any = ctypes.c_void_p) -> Callable[[object, int], int | None]:
     """eglQueryDeviceAttribEXT at `address` as (device, attribute) -> its value, or None where the device
-    has no such attribute. The value is an EGLAttrib, which EGL defines as intptr_t: PyOpenGL's
-    `EGL.EGLAttrib` is a pointer type with no `.value`, so the lookup failed on every NVIDIA device."""
+    has no such attribute. The value is an EGLAttrib, which EGL defines as intptr_t; PyOpenGL's
+    `EGL.EGLAttrib` is a pointer type, which cannot receive it (Mesa refuses the attribute before that shows)."""
     query = ctypes.CFUNCTYPE(ctypes.c_uint32, device_type, ctypes.c_int32, ctypes.POINTER(ctypes.c_ssize_t))(address)
 
     def attribute(device: object, name: int) -> int | None:
