@@ -39,6 +39,34 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+# The vector extensions that decide which float kernels torch (MKL, oneDNN) runs, and so the bits a PPO run
+# produces: two CPUs that differ here need not give one seed the same number (docs/USING.md, determinism).
+SIMD_FLAGS = ("avx512f", "avx2", "fma", "asimd", "sve")
+
+
+def cpu_model(cpuinfo: str | None = None) -> str:
+    """The CPU that computes, from `cpuinfo` (default /proc/cpuinfo): its model name, family and model, and
+    which of `SIMD_FLAGS` it has, e.g. "AMD EPYC (family 23, model 1; avx2 fma)"; the platform's processor
+    name where there is no /proc/cpuinfo."""
+    if cpuinfo is None:
+        path = Path("/proc/cpuinfo")
+        if not path.exists():
+            return platform.processor() or platform.machine()
+        cpuinfo = path.read_text(encoding="utf-8", errors="replace")
+    fields: dict[str, str] = {}
+    for line in cpuinfo.splitlines():
+        key, sep, value = line.partition(":")
+        if sep:
+            fields.setdefault(key.strip(), value.strip())
+    name = fields.get("model name") or platform.processor() or platform.machine()
+    kind = ", ".join(f"{label} {fields[key]}" for key, label in (("cpu family", "family"), ("model", "model"))
+                     if key in fields)
+    flags = set((fields.get("flags") or fields.get("Features") or "").split())
+    simd = " ".join(flag for flag in SIMD_FLAGS if flag in flags)
+    detail = "; ".join(part for part in (kind, simd) if part)
+    return f"{name} ({detail})" if detail else name
+
+
 @cache
 def git_commit() -> str | None:
     """The commit of the source tree this package runs from, if it is a git checkout."""
@@ -83,4 +111,5 @@ def versions() -> dict[str, str | None]:
         except PackageNotFoundError:
             found[name] = None
     found["git_commit"] = git_commit()
+    found["cpu"] = cpu_model()  # recorded, not keyed: a run's id names its config and code, not the machine
     return found

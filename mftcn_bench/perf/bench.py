@@ -734,13 +734,11 @@ def machine_description() -> str:
 
     from mftcn_bench.core.provenance import versions
 
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor())
     mem_kib = next(int(line.split()[1]) for line in Path("/proc/meminfo").read_text().splitlines()
                    if line.startswith("MemTotal"))
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     lib = versions()
-    return (f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC; {cpu}, {os.cpu_count()} cores, {mem_kib / 2**20:.0f} GiB; "
+    return (f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC; {lib['cpu']}, {os.cpu_count()} cores, {mem_kib / 2**20:.0f} GiB; "
             f"load average {load}; python {platform.python_version()}, torch {torch.__version__} "
             f"({torch.get_num_threads()} thread), torchrl {torchrl.__version__}, mujoco {mujoco.__version__}, "
             f"dm_control {lib.get('dm-control', lib.get('dm_control', '?'))}; MUJOCO_GL={os.environ.get('MUJOCO_GL')}")
