@@ -50,9 +50,7 @@ def cpu_model(cpuinfo: str | None = None) -> str:
     name where there is no /proc/cpuinfo."""
     if cpuinfo is None:
         path = Path("/proc/cpuinfo")
-        if not path.exists():
-            return platform.processor() or platform.machine()
-        cpuinfo = path.read_text(encoding="utf-8", errors="replace")
+        cpuinfo = path.read_text(encoding="utf-8", errors="replace") if path.exists() else ""
     fields: dict[str, str] = {}
     for line in cpuinfo.splitlines():
         key, sep, value = line.partition(":")
