@@ -61,7 +61,7 @@ def test_builtins_keep_the_contract(capsys, name):
     code, lines = _check(capsys, name)
     assert code == 0, lines
     checks = {line.split()[1]: line.split()[0] for line in lines if line[:4] in ("ok  ", "FAIL", "skip")}
-    assert set(checks) == {"spec", "construct", "metadata", "fit", "embed", "embed_episode", "streaming",
+    assert set(checks) == {"spec", "construct", "privileged", "metadata", "fit", "embed", "embed_episode", "streaming",
                            "determinism", "save-load", "device"} and set(checks.values()) == {"ok"}
 
 

@@ -24,6 +24,7 @@ class StateEncoder:
     """Embeds the true state of the clip's last frame (a perfect encoder of positions)."""
 
     info = EncoderInfo("state", 1, 1, (8, 12), 4, 0)
+    privileged_inputs = ("state",)
     needs_fit = False
 
     def embed(self, clips):

@@ -18,6 +18,7 @@ import numpy as np
 from mftcn_bench.core.errors import BenchError
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
+from mftcn_bench.encoders.privileged import Withheld, visible
 
 if TYPE_CHECKING:
     from torch import nn
@@ -44,10 +45,11 @@ class EncoderInfo:
 
 @dataclass(frozen=True)
 class ClipBatch:
-    """Clips to embed: frames [B, n, H, W, 3] uint8 and the matching true state [B, n, S] if known."""
+    """Clips to embed: frames [B, n, H, W, 3] uint8 and the matching true state [B, n, S] when known and the
+    encoder declares it (`encoders.privileged`); a `Withheld` marker when the harness withholds it."""
 
     frames: np.ndarray
-    state: np.ndarray | None = None
+    state: np.ndarray | Withheld | None = None
 
 
 @dataclass(frozen=True)
@@ -119,9 +121,11 @@ class EpisodeEmbedder(Protocol):
 class Stream(Protocol):
     """An incremental embedder of `num_envs` environments stepped together (from `streaming`)."""
 
-    def push(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> np.ndarray:
+    def push(self, frames: np.ndarray | None, episode_start: np.ndarray,
+             state: np.ndarray | Withheld | None) -> np.ndarray:
         """frames uint8 [E, H, W, 3] (None for an encoder that does not use pixels), episode_start bool [E],
-        state float [E, S] -> float32 [E, D], the embedding of the clip ending at each new frame."""
+        state float [E, S] (`Withheld` unless the encoder declares it) -> float32 [E, D], the embedding of the
+        clip ending at each new frame."""
         ...
 
 
@@ -130,7 +134,8 @@ class HistoryStream(Stream, Protocol):
     """A stream that can take a frame into its history without embedding it (the inner steps of an
     action repeat); a `Stream` without it is pushed instead."""
 
-    def observe(self, frames: np.ndarray | None, episode_start: np.ndarray, state: np.ndarray) -> None: ...
+    def observe(self, frames: np.ndarray | None, episode_start: np.ndarray,
+                state: np.ndarray | Withheld | None) -> None: ...
 
 
 @runtime_checkable
@@ -182,8 +187,10 @@ def embed_episode(encoder: Encoder, frames: np.ndarray, state: np.ndarray | None
     """Embeddings [T, D] of the clips ending at every frame of one view of an episode.
 
     Uses the encoder's own `embed_episode(frames, state)` when it is an `EpisodeEmbedder`; otherwise
-    builds the clips and calls `embed` in batches (`embed_clips_of_episode`).
+    builds the clips and calls `embed` in batches (`embed_clips_of_episode`). The state reaches the encoder
+    only if it declares it (`encoders.privileged`).
     """
+    state = visible(encoder, "state", state)
     if isinstance(encoder, EpisodeEmbedder):
         out = encoder.embed_episode(frames, state)
     else:
@@ -194,12 +201,13 @@ def embed_episode(encoder: Encoder, frames: np.ndarray, state: np.ndarray | None
 def embed_clips_of_episode(encoder: Encoder, frames: np.ndarray, state: np.ndarray | None = None,
                            batch_size: int = 256) -> np.ndarray:
     """`embed_episode` through `embed` alone: every clip of the episode built and embedded in batches."""
+    state = visible(encoder, "state", state)
     info = encoder.info
     index = clip_indices(np.arange(len(frames)), info.frames, info.stride)
     parts = []
     for start in range(0, len(frames), batch_size):
         rows = index[start:start + batch_size]
-        batch = ClipBatch(frames[rows], None if state is None else state[rows])
+        batch = ClipBatch(frames[rows], state if state is None or isinstance(state, Withheld) else state[rows])
         parts.append(check_embeddings(encoder, encoder.embed(batch), len(rows)))
     return np.concatenate(parts)
 

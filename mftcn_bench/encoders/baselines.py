@@ -146,6 +146,7 @@ class TrueStateEncoder(SpecEncoder):
     """The simulator's state as the embedding: the upper bound."""
 
     uses_pixels = False
+    privileged_inputs = ("state",)
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         super().__init__(spec, image_shape, seed)

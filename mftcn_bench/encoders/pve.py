@@ -131,6 +131,7 @@ class PVEEncoder(MovableEncoder):
     """Position from one frame, velocity as its finite difference; embedding [p_t, v_t]."""
 
     needs_fit = True
+    privileged_inputs = ("action",)  # the controllability prior reads the recorded actions during fit
 
     def __init__(self, spec: EncoderSpec, image_shape: tuple[int, int], seed: int) -> None:
         if spec.frames != 2 or spec.stride != 1:

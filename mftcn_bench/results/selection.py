@@ -3,7 +3,10 @@
 A run counts when it was made with today's spec files for its encoder, task and preset, with at most the
 keys a table varies overridden (`VARIED`: the embedding size, which the paper's tables vary; the PPO-limit
 analyses also vary PPO's budget): runs of older specs or other overrides are never mixed in. Of several
-such runs of one variant (encoder, task, preset, the varied keys' values) and seed, the latest counts.
+such runs of one variant (encoder, task, preset, the varied keys' values), only those of one code and one data
+set count: the runs sharing the encoder's and the task's code identities and the data set's fingerprint with
+the variant's latest run (so a row never mixes two versions of an encoder or two recordings of its data), and
+of those the latest per seed.
 """
 
 from __future__ import annotations
@@ -64,15 +67,7 @@ def current_specs_varying(varied: Sequence[str]) -> Accept:
 def left_out(records: Iterable[RunRecord], accept: Accept = matches_current_specs,
              varied: Sequence[str] = VARIED) -> dict[str, int]:
     """How many of `records` `counted_runs` leaves out, by reason."""
-    records = list(records)
-    reasons: Counter[str] = Counter()
-    for record in records:
-        if not accept(record):
-            reasons[exclusion(record, varied) or "not selected"] += 1
-    superseded = sum(1 for r in records if accept(r)) - len(counted_runs(records, accept, varied))
-    if superseded:
-        reasons["a later run of the same seed counts instead"] += superseded
-    return dict(sorted(reasons.items()))
+    return dict(sorted(_select(records, accept, varied)[1].items()))
 
 
 def left_out_line(records: Iterable[RunRecord], accept: Accept = matches_current_specs,
@@ -84,6 +79,59 @@ def left_out_line(records: Iterable[RunRecord], accept: Accept = matches_current
     total = sum(reasons.values())
     return (f"Left out: {total} stored run{'s' if total > 1 else ''} ("
             + "; ".join(f"{n}: {why}" for why, n in reasons.items()) + ").")
+
+
+ROW_PARTS: tuple[str, ...] = ("encoder code", "task code", "data set")
+
+
+def row_key(record: RunRecord) -> tuple[str, str, str]:
+    """What the runs of one table row share: the encoder's and the task's code identities (`code.*` of the
+    record, without `editable`) and the data set's fingerprint. Runs recorded before code identities have
+    '-' for them."""
+    def code(part: str) -> str:
+        found = config_value(record, f"code.{part}")
+        if not isinstance(found, Mapping):
+            return "-"
+        return "/".join(str(found.get(k)) for k in ("module", "distribution", "version", "source"))
+
+    return code("encoder"), code("task"), record.dataset_id or "-"
+
+
+def _select(records: Iterable[RunRecord], accept: Accept,
+            varied: Sequence[str]) -> tuple[list[RunRecord], Counter[str]]:
+    """(the counted runs, why each other run is left out). Of a variant's accepted runs only the latest group
+    of one `row_key` counts (the group holding the variant's latest run), the latest run per seed in it."""
+    reasons: Counter[str] = Counter()
+    variants: dict[tuple, list[RunRecord]] = {}
+    for record in records:
+        if accept(record):
+            variants.setdefault(variant_key(record, varied), []).append(record)
+        else:
+            reasons[exclusion(record, varied) or "not selected"] += 1
+    counted: list[RunRecord] = []
+    for runs in variants.values():
+        newest = max(runs, key=_when)
+        row = row_key(newest)
+        latest: dict[int, RunRecord] = {}
+        for record in runs:
+            other = row_key(record)
+            if other != row:
+                differs = " and ".join(p for p, a, b in zip(ROW_PARTS, other, row, strict=True) if a != b)
+                reasons[f"another {differs} than the row's latest runs"] += 1
+                continue
+            kept = latest.get(record.seed)
+            if kept is None or _when(record) > _when(kept):
+                if kept is not None:
+                    reasons["a later run of the same seed counts instead"] += 1
+                latest[record.seed] = record
+            else:
+                reasons["a later run of the same seed counts instead"] += 1
+        counted += latest.values()
+    return sorted(counted, key=lambda r: (tuple(str(p) for p in variant_key(r, varied)), r.seed)), reasons
+
+
+def _when(record: RunRecord) -> tuple[str, str]:
+    return record.created_at, record.run_id
 
 
 def code_label(record: RunRecord) -> str:
@@ -144,16 +192,9 @@ def variant_key(record: RunRecord, varied: Sequence[str] = VARIED) -> tuple[Any,
 
 def counted_runs(records: Iterable[RunRecord], accept: Accept = matches_current_specs,
                  varied: Sequence[str] = VARIED) -> list[RunRecord]:
-    """The accepted runs, the latest per (variant, seed), ordered by variant then seed."""
-    latest: dict[tuple, RunRecord] = {}
-    for record in records:
-        if not accept(record):
-            continue
-        key = (*variant_key(record, varied), record.seed)
-        kept = latest.get(key)
-        if kept is None or (record.created_at, record.run_id) > (kept.created_at, kept.run_id):
-            latest[key] = record
-    return [latest[k] for k in sorted(latest, key=lambda k: tuple(str(p) for p in k[:-1]) + (k[-1],))]
+    """The accepted runs of each variant's latest row (one encoder code, one task code, one data set:
+    `row_key`), the latest per seed, ordered by variant then seed."""
+    return _select(records, accept, varied)[0]
 
 
 def variant_label(record: RunRecord, varied: Sequence[str] = VARIED) -> str:

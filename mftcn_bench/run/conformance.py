@@ -6,7 +6,8 @@ the harness relies on and a wrong implementation would get past silently: the sp
 satisfies `Encoder`, its metadata matches the spec, a short fit returns statistics, embeddings have the
 right shape, dtype and finite values, `embed_episode` and the rollout path (`streaming`, or the clip window
 over `embed`) give `embed`'s embeddings of the same clips (within `TOLERANCE`), a second instance with the
-same seed gives the same embeddings, a save / load round trip keeps them, and (`--device`) the saved
+same seed gives the same embeddings, a save / load round trip keeps them, what privileged inputs it declares
+(the fit and every embedding path then withhold the rest, as a run does), and (`--device`) the saved
 encoder placed on a device (`to_device`) embeds as on the CPU. One line per check.
 """
 
@@ -36,6 +37,7 @@ from mftcn_bench.encoders.base import (
     embed_episode,
     uses_pixels,
 )
+from mftcn_bench.encoders.privileged import dataset_for, declared_inputs, is_reference
 from mftcn_bench.run.runner import PreparedRun, RunRequest, attach_feature_cache, construct_encoder, prepare
 
 # Two paths to the same embedding may differ by TOLERANCE times the embeddings' largest magnitude (at least
@@ -99,7 +101,7 @@ class EncoderCheck:
             return {}
         calls: list[tuple] = []
         steps = int(self.prepared.config["encoder"].get("train", {}).get("steps", 1))
-        stats = encoder.fit(self.dataset, FitBudget(steps=steps), lambda *a: calls.append(a),
+        stats = encoder.fit(dataset_for(encoder, self.dataset), FitBudget(steps=steps), lambda *a: calls.append(a),
                             self.workdir / folder)
         if not isinstance(stats, dict) or not all(isinstance(v, int | float) for v in stats.values()):
             raise _Failed(f"fit returned {type(stats).__name__} {stats!r:.80}; expected a dict of floats")
@@ -125,6 +127,15 @@ class EncoderCheck:
     def construct(self) -> str:
         self.encoder = self._new()
         return f"{type(self.encoder).__name__} satisfies Encoder"
+
+    def privileged(self) -> str:
+        assert self.encoder is not None
+        declared = declared_inputs(self.encoder)
+        if not declared:
+            return "declares no privileged input: pixels only (the true state and actions are withheld)"
+        role = ("a reference, ranked apart from the pixel encoders" if is_reference(declared)
+                else "ranked with the pixel encoders, its entries marked")
+        return f"declares privileged_inputs {list(declared)}: {role}"
 
     def metadata(self) -> str:
         assert self.encoder is not None and self.prepared is not None and self.dataset is not None
@@ -229,7 +240,8 @@ class EncoderCheck:
 
     def run(self) -> Iterator[CheckLine]:
         checks: list[tuple[str, Callable[[], str]]] = [
-            ("spec", self.spec), ("construct", self.construct), ("metadata", self.metadata), ("fit", self.fit),
+            ("spec", self.spec), ("construct", self.construct), ("privileged", self.privileged),
+            ("metadata", self.metadata), ("fit", self.fit),
             ("embed", self.embed), ("embed_episode", self.embed_episode), ("streaming", self.streaming),
             ("determinism", self.determinism), ("save-load", self.save_load), ("device", self.device)]
         blocked = None
@@ -245,7 +257,7 @@ class EncoderCheck:
                 where = traceback.extract_tb(exc.__traceback__)[-1]
                 yield CheckLine("FAIL", name, f"{type(exc).__name__}: {exc} ({Path(where.filename).name}:"
                                               f"{where.lineno})")
-                if name in ("spec", "construct", "fit"):
+                if name in ("spec", "construct", "privileged", "fit"):
                     blocked = name
 
 

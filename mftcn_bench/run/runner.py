@@ -36,6 +36,7 @@ from mftcn_bench.data.dataset import MultiViewDataset, check_dataset_config, dat
 from mftcn_bench.encoders.base import Encoder, FeatureCacheUser, FitBudget, MultiViewTrainer
 from mftcn_bench.encoders.bases import FrozenBase
 from mftcn_bench.encoders.feature_cache import ensure_feature_cache
+from mftcn_bench.encoders.privileged import dataset_for, declared_inputs
 from mftcn_bench.results.store import ResultStore, RunRecord
 from mftcn_bench.sim.rendering import follow_device
 from mftcn_bench.tasks.base import ChecksEncoder, NeedsArtifacts, OnlineTask, ShowsProgress, Task
@@ -222,6 +223,7 @@ def _check_encoder(entry: registry.Entry, encoder_config: Mapping[str, Any], see
     if not all(isinstance(x, int) for x in shape):
         return None
     encoder = construct_encoder(entry, encoder_config, seed, shape)
+    declared_inputs(encoder)  # an unknown declaration is refused here, before any data is collected
     if isinstance(encoder, MultiViewTrainer) and encoder.training_views > len(cameras):
         raise SpecError(f"encoder {entry.name!r} trains on {encoder.training_views} camera views of each "
                         f"moment; the task's dataset has {len(cameras)} ({', '.join(cameras) or 'none'}): give "
@@ -301,7 +303,7 @@ def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset,
     budget = FitBudget(steps=int(train.get("steps", 0)), max_seconds=train.get("max_seconds") or None)
     bar, report = _progress_bar(spec.name, show_progress)
     try:
-        fit_stats = encoder.fit(dataset, budget, report, workdir)
+        fit_stats = encoder.fit(dataset_for(encoder, dataset), budget, report, workdir)
     except BaseException:
         if not any(workdir.iterdir()):  # nothing to resume from: leave no empty folder behind
             workdir.rmdir()
@@ -391,7 +393,8 @@ def _run_once(prepared: PreparedRun, home: BenchHome, show_progress: bool, began
         run_id=record_id, encoder=request.encoder, task=request.task, preset=prepared.preset,
         seed=request.seed, dataset_id=None if dataset is None else dataset.fingerprint,
         config={**prepared.config, "preset": prepared.preset, "seed": request.seed,
-                "encoder_info": asdict(encoder.info), "code": prepared.code.as_dict(), "fit": fit,
+                "encoder_info": asdict(encoder.info), "privileged": list(declared_inputs(encoder)),
+                "code": prepared.code.as_dict(), "fit": fit,
                 "notes": [*result.notes, *placement_notes],
                 "dataset_path": None if dataset is None else str(dataset.root),
                 "device": prepared.placement.record(),
