@@ -27,12 +27,16 @@ def test_the_leaderboard_table_is_read_from_the_spec_and_is_not_part_of_a_run_co
                                  "leaderboard": {"metric": 3}})
 
 
-def test_board_ranks_by_the_metric_with_mean_std_seeds_version_and_latest_date():
+def test_board_ranks_pixel_encoders_and_lists_references_apart():
     text = render_boards(records())["cartpole-probe.md"]
-    lines = [line for line in text.splitlines() if line.startswith("| ") and "rank" not in line]
-    assert [line.split("|")[2].strip() for line in lines] == ["true-state", "pve", "random-state"]
-    first = [c.strip() for c in lines[0].split("|")[1:-1]]
-    assert first == ["1", "true-state", "0.0020 ± 0.0014", "-", "2", "quick", "mftcn-bench 0.1.0", "2026-03-04"]
+    ranked, references = text.split("References (not ranked):")
+    lines = [line for line in ranked.splitlines() if line.startswith("| ") and "rank" not in line]
+    assert [[c.strip() for c in line.split("|")[1:-1]] for line in lines] == [
+        ["1", "pve", "2.70", "-", "1", "pixels, action", "mftcn-bench 0.1.0", "2026-03-02"]]
+    lines = [line for line in references.splitlines() if line.startswith("| ") and "role" not in line]
+    rows = [[c.strip() for c in line.split("|")[1:-1]] for line in lines]
+    assert [row[:2] for row in rows] == [["true-state", "reads: state"], ["random-state", "floor (random features)"]]
+    assert rows[0][2:] == ["0.00200 ± 0.00141", "-", "2", "mftcn-bench 0.1.0", "2026-03-04"]  # 3 significant digits
     assert "## preset `quick`" in text and "ddof=1" in text
 
 
@@ -50,7 +54,7 @@ def test_same_results_same_bytes_whatever_the_order(tmp_path):
     assert names == ["README.md", "cartpole-probe.md"]
     assert all((a / n).read_bytes() == (b / n).read_bytes() for n in names)
     index = (a / "README.md").read_text()
-    assert "[cartpole-probe](cartpole-probe.md)" in index and "true-state: 0.0020 ± 0.0014" in index
+    assert "[cartpole-probe](cartpole-probe.md)" in index and "| pve: 2.70 | 1 |" in index
 
 
 def test_a_board_whose_task_has_no_runs_left_is_removed_and_other_folders_are_left_alone(tmp_path):
@@ -73,12 +77,12 @@ def test_iqm_column_from_three_seeds_and_tasks_without_a_board_are_named():
     files = render_boards(runs, accept=lambda r: True)
     # Three seeds: floor(3 / 4) = 0 values cut from each end, so the IQM is the mean (4.0), said on the board.
     board = " ".join(files["cartpole-probe.md"].split())
-    assert "| 4.0000 ± 4.3589 | 4.0000 [1.0000, 9.0000] |" in board
+    assert "| 4.00 ± 4.36 | 4.00 [1.00, 9.00] |" in board
     assert "nothing is cut" in files["cartpole-probe.md"]
     four = [make_record("pve", "cartpole-probe", s, {"average": v}, config=probe_config("pve"))
             for s, v in enumerate((1.0, 2.0, 3.0, 10.0))]
     four_board = " ".join(render_boards(four, accept=lambda r: True)["cartpole-probe.md"].split())
-    assert "| 4.0000 ± 4.0825 | 2.5000 [" in four_board
+    assert "| 4.00 ± 4.08 | 2.50 [1.00, 10.0] |" in four_board
     assert "without a board" in files["README.md"] and "unknown-task" in files["README.md"]
 
 
@@ -88,3 +92,41 @@ def test_a_tasks_boards_put_the_paper_preset_first_then_quick_then_the_others():
     text = render_boards(runs, accept=lambda r: True)["cartpole-probe.md"]
     headings = [line for line in text.splitlines() if line.startswith("## preset")]
     assert headings == ["## preset `paper`", "## preset `quick`", "## preset `demo`", "## preset `smoke`"]
+
+
+def _row_of_two(change):
+    """Seeds 0 and 1 of one mftcn1 row, seed 1 recorded later with `change` applied to its record."""
+    from dataclasses import replace
+
+    code = {"encoder": {"module": "mftcn_bench.encoders.mftcn", "distribution": "mftcn-bench", "version": "0.1.0",
+                        "source": "aaaa", "editable": True},
+            "task": {"module": "mftcn_bench.tasks.probe", "distribution": "mftcn-bench", "version": "0.1.0",
+                     "source": "bbbb", "editable": True}, "harness": "h"}
+    first = make_record("mftcn1", "cartpole-probe", 0, {"average": 1.0}, config={**probe_config("mftcn1"),
+                                                                                   "code": code})
+    second = make_record("mftcn1", "cartpole-probe", 1, {"average": 3.0}, config={**probe_config("mftcn1"),
+                                                                                    "code": code},
+                         created_at="2026-01-03T03:04:05+00:00")
+    return [first, change(replace, second)]
+
+
+@pytest.mark.parametrize(("change", "reason"), [
+    (lambda replace, r: replace(r, config={**r.config, "code": {**r.config["code"], "encoder": {
+        **r.config["code"]["encoder"], "source": "cccc"}}}), "a different encoder code"),
+    (lambda replace, r: replace(r, dataset_id="another-recording"), "a different data set"),
+])
+def test_a_row_counts_one_code_and_one_data_set_and_the_footer_says_what_was_left_out(change, reason):
+    from mftcn_bench.results.selection import counted_runs
+
+    same = _row_of_two(lambda replace, r: r)
+    assert [r.seed for r in counted_runs(same)] == [0, 1]
+    mixed = _row_of_two(change)
+    assert [r.seed for r in counted_runs(mixed)] == [1]  # the latest run's group: seed 0 differs
+    files = render_boards(mixed)
+    board = " ".join(files["cartpole-probe.md"].split())
+    assert "| 1 | mftcn1 | 3.00 | - | 1 |" in board  # never the mean of the two versions (2.00)
+    assert f"1: {reason} from the row's latest runs" in files["README.md"]
+    # a harness-only change (the runner's digest) does not split a row
+    harness = _row_of_two(lambda replace, r: replace(r, config={**r.config, "code": {**r.config["code"],
+                                                                                      "harness": "other"}}))
+    assert [r.seed for r in counted_runs(harness)] == [0, 1]

@@ -2,8 +2,10 @@
 
 A pure function of the stored results: the date shown is the latest `created_at` of the runs behind an
 entry, never today's date, and every ordering is fixed, so the same results give the same bytes. The
-metric and its direction come from the task spec's `[leaderboard]` table; tasks without one (or not
-installed here) get no board and are named in the index.
+metric, its direction and its printing come from the task spec's `[leaderboard]` table; tasks without one
+(or not installed here) get no board and are named in the index. Pixel encoders are ranked; references (an
+encoder that reads the true state, the scorecard's floor and ceiling: `results.references`) are listed apart
+below them. The index opens with the overall board, the scorecard's (`results.scorecard`).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from tabulate import tabulate
 from mftcn_bench.core import registry
 from mftcn_bench.core.errors import BenchError, SpecError
 from mftcn_bench.core.fileio import atomic_write_bytes
+from mftcn_bench.results.references import privileged_of, reference_role
 from mftcn_bench.results.selection import (
     Accept,
     code_label,
@@ -34,11 +37,20 @@ from mftcn_bench.results.store import RunRecord
 
 @dataclass(frozen=True)
 class Ranking:
-    """How a task's results are ranked: the metric, its direction and its printed name."""
+    """How a task's results are ranked: the metric, its direction, its printed name and precision (`decimals`
+    when given, else `significant` digits: see `stats.format_number`)."""
 
     metric: str
     higher_is_better: bool
     label: str
+    decimals: int | None = None
+    significant: int = 3
+
+    def format(self, stats: SeedStats | None) -> str:
+        return format_mean_std(stats, self.decimals, significant=self.significant)
+
+    def format_iqm(self, stats: SeedStats | None) -> str:
+        return format_iqm(stats, self.decimals, significant=self.significant)
 
 
 @dataclass(frozen=True)
@@ -50,6 +62,14 @@ class Entry:
     preset: str
     version: str
     date: str
+    reference: str | None = None    # why it is listed apart (`references.reference_role`); None: ranked
+    privileged: tuple[str, ...] = ()  # what its encoder declared besides pixels
+    run_ids: tuple[str, ...] = ()   # the runs behind it, by seed
+
+    @property
+    def reads(self) -> str:
+        """A ranked encoder's inputs: pixels, and what it declared besides."""
+        return ", ".join(("pixels", *self.privileged))
 
 
 def ranking(task: str) -> Ranking | None:
@@ -64,7 +84,10 @@ def ranking(task: str) -> Ranking | None:
     if not isinstance(metric, str) or not isinstance(table.get("higher_is_better"), bool):
         raise SpecError(f"task spec {task!r}: [leaderboard] needs metric = \"<name>\" and "
                         f"higher_is_better = true/false")
-    return Ranking(metric, table["higher_is_better"], str(table.get("label", metric)))
+    decimals, significant = table.get("decimals"), table.get("significant", 3)
+    if not (decimals is None or isinstance(decimals, int)) or not isinstance(significant, int):
+        raise SpecError(f"task spec {task!r}: [leaderboard] decimals and significant must be integers")
+    return Ranking(metric, table["higher_is_better"], str(table.get("label", metric)), decimals, significant)
 
 
 def entries(runs: Sequence[RunRecord], rank: Ranking) -> list[Entry]:
@@ -79,17 +102,29 @@ def entries(runs: Sequence[RunRecord], rank: Ranking) -> list[Entry]:
             continue
         version = ", ".join(sorted({code_label(r) for r in group}))
         date = max(r.created_at for r in group)[:10]
-        out.append(Entry(variant_label(group[0]), stats, group[0].preset, version, date))
+        out.append(Entry(variant_label(group[0]), stats, group[0].preset, version, date, reference_role(group[0]),
+                         privileged_of(group[0]), tuple(r.run_id for r in sorted(group, key=lambda r: r.seed))))
     sign = -1.0 if rank.higher_is_better else 1.0
     return sorted(out, key=lambda e: (sign * e.stats.mean, e.encoder))
 
 
 def _board(rank: Ranking, board: Sequence[Entry]) -> str:
-    headers = ["rank", "encoder", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "preset",
-               "encoder code", "date"]
-    rows = [[str(i), e.encoder, format_mean_std(e.stats), format_iqm(e.stats), str(e.stats.n), e.preset,
-             e.version, e.date] for i, e in enumerate(board, 1)]
-    return tabulate(rows, headers=headers, tablefmt="github", disable_numparse=True)
+    """The ranked pixel encoders, then the references apart (unranked)."""
+    ranked = [e for e in board if e.reference is None]
+    references = [e for e in board if e.reference is not None]
+    headers = ["rank", "encoder", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "reads", "encoder code",
+               "date"]
+    rows = [[str(i), e.encoder, rank.format(e.stats), rank.format_iqm(e.stats), str(e.stats.n), e.reads,
+             e.version, e.date] for i, e in enumerate(ranked, 1)]
+    text = tabulate(rows, headers=headers, tablefmt="github", disable_numparse=True) if rows else (
+        "No pixel encoder has runs here.")
+    if references:
+        rows = [[e.encoder, e.reference, rank.format(e.stats), rank.format_iqm(e.stats), str(e.stats.n),
+                 e.version, e.date] for e in references]
+        text += "\n\nReferences (not ranked):\n\n" + tabulate(
+            rows, headers=["encoder", "role", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "encoder code",
+                           "date"], tablefmt="github", disable_numparse=True)
+    return text
 
 
 def _by_task_and_preset(runs: Iterable[RunRecord]) -> dict[str, dict[str, list[RunRecord]]]:
@@ -105,10 +140,13 @@ def _explain(rank: Ranking) -> str:
     return (f"Ranked by {rank.label} (metric `{rank.metric}`, {better} is better). std: {STD_KIND}; "
             f"IQM: interquartile mean (the mean after cutting floor(n/4) of the n seeds from each end, so "
             f"with fewer than 4 seeds nothing is cut and it is the mean) with a percentile-bootstrap 95% "
-            f"interval, given from {IQM_MIN_SEEDS} seeds on. Only runs of the current spec files count (an "
-            f"overridden embedding size is its own entry); of repeated runs of one seed the latest counts. "
-            f"Encoder code: the distribution and version that shipped the encoder (a plugin's own). Date: the "
-            f"latest of the entry's runs.")
+            f"interval (rliable), given from {IQM_MIN_SEEDS} seeds on. Only runs of the current spec files count "
+            f"(an overridden embedding size is its own entry), and of those only the runs of one encoder code, "
+            f"one task code and one data set (the entry's latest); of repeated runs of one seed the latest "
+            f"counts. Reads: the encoder's inputs (pixels, and `action` for one that also reads the recorded "
+            f"actions). References (encoders that read the true state, the scorecard's floor and ceiling) are "
+            f"listed apart, not ranked. Encoder code: the distribution and version that shipped the encoder (a "
+            f"plugin's own). Date: the latest of the entry's runs.")
 
 
 _INDEX_TITLE = "# Leaderboards"
@@ -122,7 +160,7 @@ def render_boards(records: Iterable[RunRecord], accept: Accept = matches_current
              "Generated by `mftcn-bench leaderboard` from the results store; do not edit by hand. Results "
              "travel between machines as JSON files (`mftcn-bench results export DIR` / `results import DIR`).",
              "",
-             "| task | ranked by | preset | best | seeds |", "|---|---|---|---|---|"]
+             "| task | ranked by | preset | best pixel encoder | seeds |", "|---|---|---|---|---|"]
     unranked = []
     for task, presets in _by_task_and_preset(counted_runs(records, accept)).items():
         rank = ranking(task)
@@ -134,9 +172,9 @@ def render_boards(records: Iterable[RunRecord], accept: Accept = matches_current
         for preset, runs in presets.items():
             board = entries(runs, rank)
             lines += ["", f"## preset `{preset}`", "", _board(rank, board)]
-            best = board[0] if board else None
+            best = next((e for e in board if e.reference is None), None)
             index.append(f"| [{task}]({task}.md) | {rank.label} ({direction} is better) | {preset} | "
-                         + (f"{best.encoder}: {format_mean_std(best.stats)} | {best.stats.n} |" if best
+                         + (f"{best.encoder}: {rank.format(best.stats)} | {best.stats.n} |" if best
                             else "- | - |"))
         files[f"{task}.md"] = "\n".join(lines) + "\n"
     if unranked:

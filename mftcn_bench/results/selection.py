@@ -116,8 +116,8 @@ def _select(records: Iterable[RunRecord], accept: Accept,
         for record in runs:
             other = row_key(record)
             if other != row:
-                differs = " and ".join(p for p, a, b in zip(ROW_PARTS, other, row, strict=True) if a != b)
-                reasons[f"another {differs} than the row's latest runs"] += 1
+                differs = ", ".join(p for p, a, b in zip(ROW_PARTS, other, row, strict=True) if a != b)
+                reasons[f"a different {differs} from the row's latest runs"] += 1
                 continue
             kept = latest.get(record.seed)
             if kept is None or _when(record) > _when(kept):

@@ -1,8 +1,9 @@
 """Statistics over seeds: mean, sample standard deviation, and (with 3 seeds or more) the interquartile
-mean with a percentile-bootstrap 95% confidence interval.
+mean with a percentile-bootstrap confidence interval (rliable's, `results.intervals`, as the scorecard's).
 
 Every figure that aggregates seeds goes through `seed_stats`, so reports, leaderboards and plots agree on
-one rule. The bootstrap draws from a fixed seed: the same values always give the same interval.
+one rule. The bootstrap draws from a fixed seed: the same values always give the same interval. Numbers are
+printed by `format_number`: to a number of decimals (returns: one) or of significant digits (errors).
 """
 
 from __future__ import annotations
@@ -14,12 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats as scipy_stats
 
+from mftcn_bench.results.intervals import aggregates
+
 STD_KIND = "sample std over seeds (ddof=1)"
 IQM_MIN_SEEDS = 3             # below this the interquartile mean and its interval are not given
-IQM_TRIM = 0.25               # cut this fraction from each end: the interquartile mean
-CONFIDENCE = 0.95
-BOOTSTRAP_RESAMPLES = 10_000
-BOOTSTRAP_SEED = 0
+IQM_TRIM = 0.25               # cut this fraction from each end: the interquartile mean (rliable's too)
 
 
 @dataclass(frozen=True)
@@ -40,19 +40,14 @@ def iqm(values: Sequence[float]) -> float:
     return float(scipy_stats.trim_mean(np.asarray(values, dtype=float), IQM_TRIM))
 
 
-def _iqm_axis(sample: np.ndarray, axis: int = -1) -> np.ndarray:
-    return scipy_stats.trim_mean(sample, IQM_TRIM, axis=axis)
-
-
-def bootstrap_iqm_ci(values: Sequence[float], confidence: float = CONFIDENCE,
-                     resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED) -> tuple[float, float]:
-    """Percentile-bootstrap interval of the interquartile mean, deterministic for a given seed."""
+def bootstrap_iqm_ci(values: Sequence[float]) -> tuple[float, float]:
+    """Percentile-bootstrap interval of the interquartile mean (rliable: one task, its runs resampled),
+    deterministic for the spec's seed."""
     data = np.asarray(values, dtype=float)
     if np.ptp(data) == 0:  # every resample is the same value
         return float(data[0]), float(data[0])
-    result = scipy_stats.bootstrap((data,), _iqm_axis, n_resamples=resamples, confidence_level=confidence,
-                                   method="percentile", vectorized=True, rng=np.random.default_rng(seed))
-    return float(result.confidence_interval.low), float(result.confidence_interval.high)
+    estimate = aggregates({"values": data[:, None]})["values"].iqm
+    return estimate.low, estimate.high
 
 
 def seed_stats(values: Iterable[float | None]) -> SeedStats | None:
@@ -70,16 +65,27 @@ def seed_stats(values: Iterable[float | None]) -> SeedStats | None:
     return SeedStats(n, mean, std, iqm(data), low, high)
 
 
-def format_mean_std(s: SeedStats | None, decimals: int = 4, pm: str = "±") -> str:
-    """'mean ± std' (or 'mean' for one seed, '-' for none)."""
+def format_number(value: float, decimals: int | None = None, significant: int = 3) -> str:
+    """`value` to `decimals` decimals, or (None) to `significant` significant digits: 611.7, 0.000612, 1.64,
+    35.1."""
+    if decimals is not None:
+        return f"{value:.{decimals}f}"
+    if value == 0 or not math.isfinite(value):
+        return f"{value:g}"
+    places = max(significant - 1 - math.floor(math.log10(abs(value))), 0)
+    return f"{round(value, places):.{places}f}"
+
+
+def format_mean_std(s: SeedStats | None, decimals: int | None = 4, pm: str = "±", significant: int = 3) -> str:
+    """'mean ± std' (or 'mean' for one seed, '-' for none), by `format_number`."""
     if s is None:
         return "-"
-    text = f"{s.mean:.{decimals}f}"
-    return text if s.std is None else f"{text} {pm} {s.std:.{decimals}f}"
+    text = format_number(s.mean, decimals, significant)
+    return text if s.std is None else f"{text} {pm} {format_number(s.std, decimals, significant)}"
 
 
-def format_iqm(s: SeedStats | None, decimals: int = 4) -> str:
+def format_iqm(s: SeedStats | None, decimals: int | None = 4, significant: int = 3) -> str:
     """'iqm [low, high]' or '-' below IQM_MIN_SEEDS seeds."""
     if s is None or s.iqm is None:
         return "-"
-    return f"{s.iqm:.{decimals}f} [{s.ci_low:.{decimals}f}, {s.ci_high:.{decimals}f}]"
+    return "{} [{}, {}]".format(*(format_number(v, decimals, significant) for v in (s.iqm, s.ci_low, s.ci_high)))
