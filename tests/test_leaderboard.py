@@ -4,7 +4,8 @@ import pytest
 
 from mftcn_bench.core import registry
 from mftcn_bench.core.specs import TaskSpec, resolve_config
-from mftcn_bench.results.leaderboard import Ranking, entries, ranking, render_boards, write_boards
+from mftcn_bench.results.leaderboard import entries, render_boards, write_boards
+from mftcn_bench.results.ranking import Ranking, ranking
 from tests.records import make_record, probe_config
 
 RESULTS = [("true-state", 0, 0.001, "2026-03-01T10:00:00+00:00"), ("true-state", 1, 0.003, "2026-03-04T10:00:00+00:00"),

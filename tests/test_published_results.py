@@ -13,7 +13,8 @@ import pytest
 
 from mftcn_bench.core import registry
 from mftcn_bench.core.provenance import TRACKED_PACKAGES
-from mftcn_bench.results.leaderboard import ranking, render_boards
+from mftcn_bench.results.leaderboard import render_boards
+from mftcn_bench.results.ranking import ranking
 from mftcn_bench.results.records_io import import_results, record_from_json
 from mftcn_bench.results.store import ResultStore
 

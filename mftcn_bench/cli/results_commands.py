@@ -20,7 +20,7 @@ from mftcn_bench.core.home import BenchHome
 from mftcn_bench.core.specs import parse_override
 
 REPORT_CHOICES = ["probe", "swingup", "cheetah", "pouring", "pouring-attributes", "swingup-limits",
-                  "cheetah-limits", "probe-streams", "swingup-streams", "imitate", "all"]
+                  "cheetah-limits", "probe-streams", "swingup-streams", "imitate", "scorecard", "all"]
 PLOT_CHOICES = ["curves", "probe-lookback", "pouring-lookback"]
 
 
@@ -64,6 +64,9 @@ def add_commands(commands: argparse._SubParsersAction, common: Callable[[argpars
     report.add_argument("--preset", help="only results of this preset (default: the paper preset's, then the "
                         "quick preset's, each labelled)")
     report.add_argument("--format", choices=["markdown", "latex"], default="markdown")
+    report.add_argument("--encoders", help="scorecard: only these encoders (comma-separated; the floor and "
+                        "ceiling are always scored)")
+    report.add_argument("--plot", metavar="PNG", help="scorecard: also write the performance profiles here")
     common(report)
     report.set_defaults(handler=cmd_report)
 
@@ -100,7 +103,7 @@ def add_commands(commands: argparse._SubParsersAction, common: Callable[[argpars
 def cmd_sweep(args: argparse.Namespace) -> None:
     from mftcn_bench.orchestration.queue import SweepQueue
     from mftcn_bench.orchestration.sweep import Sweep, SweepFailed, SweepRequest, parse_names, parse_seeds, summary_rows
-    from mftcn_bench.results.leaderboard import ranking
+    from mftcn_bench.results.ranking import ranking
 
     home = BenchHome.resolve(args.home)
     if args.action == "status":
@@ -154,8 +157,32 @@ def cmd_report(args: argparse.Namespace) -> None:
     from mftcn_bench.results.paper_tables import TABLES
     from mftcn_bench.results.report import report
 
+    if args.table == "scorecard":
+        _scorecard(args)
+        return
+    if args.encoders or args.plot:
+        raise SpecError(f"--encoders and --plot are options of `report scorecard`, not of `report {args.table}`")
     names = list(TABLES) if args.table == "all" else [args.table]
     print(report(_store(args), names, args.preset, args.format))
+
+
+def _scorecard(args: argparse.Namespace) -> None:
+    from mftcn_bench.core import registry
+    from mftcn_bench.results import scorecard
+
+    if args.format != "markdown":
+        raise SpecError("report scorecard prints markdown only (--format markdown)")
+    encoders = None
+    if args.encoders:
+        encoders = [name.strip() for name in args.encoders.split(",") if name.strip()]
+        for name in encoders:
+            registry.get("encoders", name)  # an unknown name: one line with suggestions, before any work
+    card = scorecard.build(_store(args).query(), args.preset or "paper", encoders)
+    print(scorecard.render(card))
+    if args.plot:
+        written = scorecard.plot_profiles(card, Path(args.plot))
+        print(f"\nperformance profiles: {written}" if written else "\nno performance profiles: no encoder has an "
+              "aggregate at this preset")
 
 
 def cmd_leaderboard(args: argparse.Namespace) -> None:
