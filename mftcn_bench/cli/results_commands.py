@@ -64,14 +64,16 @@ def add_commands(commands: argparse._SubParsersAction, common: Callable[[argpars
     report.add_argument("--preset", help="only results of this preset (default: the paper preset's, then the "
                         "quick preset's, each labelled)")
     report.add_argument("--format", choices=["markdown", "latex"], default="markdown")
-    report.add_argument("--encoders", help="scorecard: only these encoders (comma-separated; the floor and "
-                        "ceiling are always scored)")
+    report.add_argument("--encoders", help="scorecard: only these encoders (comma-separated; the floor, "
+                        "ceiling and baseline are always scored)")
     report.add_argument("--plot", metavar="PNG", help="scorecard: also write the performance profiles here")
     common(report)
     report.set_defaults(handler=cmd_report)
 
     board = commands.add_parser("leaderboard", help="write markdown leaderboards from stored results")
     board.add_argument("--out", default="leaderboards", help="folder to write (default ./leaderboards)")
+    board.add_argument("--html", metavar="DIR", help="write the web leaderboard instead: DIR/index.html (one "
+                       "self-contained page) and the run records it links to, DIR/records/")
     common(board)
     board.set_defaults(handler=cmd_leaderboard)
 
@@ -188,6 +190,11 @@ def _scorecard(args: argparse.Namespace) -> None:
 def cmd_leaderboard(args: argparse.Namespace) -> None:
     from mftcn_bench.results.leaderboard import write_boards
 
+    if args.html:
+        from mftcn_bench.results.site import write_site
+
+        print(f"wrote {write_site(_store(args).query(), Path(args.html))}")
+        return
     written = write_boards(_store(args).query(), Path(args.out))
     print(f"wrote {len(written)} files to {args.out}: {', '.join(p.name for p in written)}")
 

@@ -92,7 +92,7 @@ def _board(rank: Ranking, board: Sequence[Entry]) -> str:
     return text
 
 
-def _by_task_and_preset(runs: Iterable[RunRecord]) -> dict[str, dict[str, list[RunRecord]]]:
+def by_task_and_preset(runs: Iterable[RunRecord]) -> dict[str, dict[str, list[RunRecord]]]:
     out: dict[str, dict[str, list[RunRecord]]] = defaultdict(lambda: defaultdict(list))
     for record in runs:
         out[record.task][record.preset].append(record)
@@ -137,7 +137,7 @@ def render_boards(records: Iterable[RunRecord], accept: Accept = matches_current
         index += [scorecard.render(card), ""]
     index += ["## Per task", "", "| task | ranked by | preset | best pixel encoder | seeds |", "|---|---|---|---|---|"]
     unranked = []
-    for task, presets in _by_task_and_preset(counted_runs(records, accept)).items():
+    for task, presets in by_task_and_preset(counted_runs(records, accept)).items():
         rank = ranking(task)
         if rank is None:
             unranked.append(task)

@@ -134,7 +134,7 @@ class Scorecard:
 def build(records: Iterable[RunRecord], preset: str = "paper", encoders: Sequence[str] | None = None,
           accept: Accept = matches_current_specs) -> Scorecard:
     """The scorecard of `preset` from `records` (every encoder with runs, or only `encoders`, with the
-    floor and ceiling always)."""
+    floor, ceiling and baseline always)."""
     spec = scorecard_spec()
     floor, ceiling = anchors()
     baseline, runs_needed = str(spec["baseline"]), int(spec["runs"])
@@ -159,7 +159,7 @@ def build(records: Iterable[RunRecord], preset: str = "paper", encoders: Sequenc
         else:
             scales[scoring.task] = Anchor(float(np.mean(low)), float(np.mean(high)), len(low), len(high))
 
-    wanted = None if encoders is None else {*encoders, floor, ceiling}
+    wanted = None if encoders is None else {*encoders, floor, ceiling, baseline}
     cells: dict[str, dict[str, Cell]] = {}
     example: dict[str, RunRecord] = {}
     for scoring in scorings:
