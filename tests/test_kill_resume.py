@@ -316,6 +316,8 @@ def test_a_checkpoint_without_its_completion_marker_is_fitted_again(tmp_path):
     from mftcn_bench.run.runner import _fit_or_load
 
     class Recording:
+        privileged_inputs = ("state", "action")  # nothing withheld: `fit` gets the (here absent) dataset as is
+
         def __init__(self):
             self.fits, self.loads = 0, 0
 

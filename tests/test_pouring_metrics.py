@@ -125,6 +125,7 @@ def labelled_collector(config, index):
 
 class StateEncoder:
     info = EncoderInfo("state", 1, 1, (8, 12), 9, 0)
+    privileged_inputs = ("state",)
     needs_fit = False
 
     def embed(self, clips):

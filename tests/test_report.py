@@ -109,7 +109,7 @@ def test_every_table_renders_from_an_empty_store(tmp_path):
 def test_report_offers_every_table():
     from mftcn_bench.cli.results_commands import REPORT_CHOICES
 
-    assert REPORT_CHOICES == [*TABLES, "all"]
+    assert REPORT_CHOICES == [*TABLES, "scorecard", "all"]
 
 
 def test_a_task_encoder_default_embedding_size_is_the_paper_row_not_an_override():
