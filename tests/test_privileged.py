@@ -81,9 +81,14 @@ def test_a_declared_read_runs_and_its_record_and_board_say_so(leaky, home, tmp_p
 
 def test_withheld_refuses_every_use():
     withheld = Withheld("state", "mine")
-    for use in (lambda w: w[:, -1], np.asarray, len, lambda w: w.shape, lambda w: w + 1, bool):
+    for use in (lambda w: w[:, -1], np.asarray, len, lambda w: w.shape, lambda w: w + 1, bool,
+                lambda w: np.concatenate([w, w])):
         with pytest.raises(PrivilegedInputError, match="encoder 'mine' read the true state"):
             use(withheld)
+    import copy
+    import pickle
+
+    assert repr(copy.deepcopy(withheld)) == repr(pickle.loads(pickle.dumps(withheld))) == "Withheld('state')"
 
 
 def test_declarations_of_the_builtins():
