@@ -48,6 +48,10 @@ def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encod
     assert all(0.0 <= r <= env["episode_length"] for r in [*test_returns, *curve["return"]])
     assert curve["frames"] == [float(batch_frames * (k + 1)) for k in range(batches)]  # one point per batch
     assert len(curve["wall_s"]) == batches and sorted(curve["wall_s"]) == curve["wall_s"]
+    diagnostics = record.curves["ppo"]  # cleanrl's per-batch diagnostics beside the learning curve
+    assert diagnostics["frames"] == curve["frames"]
+    assert {"approx_kl", "clip_fraction", "explained_variance"} <= set(diagnostics)
+    assert all(len(column) == batches for column in diagnostics.values())
     run_dir = control_home / "runs" / record.run_id
     if encoder == "true-state":  # the test episodes again, stepped here with the stored policy's mean action
         assert test_returns.tolist() == pytest.approx(_test_returns_by_hand(task, record, run_dir), rel=1e-5)

@@ -99,3 +99,56 @@ def test_training_lowers_the_loss(tmp_path):
     losses = []
     make(frames=2).fit(dataset, FitBudget(40), lambda s, t, st: losses.append(st["loss"]), tmp_path / "w")
     assert np.mean(losses[-5:]) < np.mean(losses[:5])
+
+
+def test_the_heldout_loss_is_the_test_episodes_loss_in_eval_mode_and_changes_no_weight(tmp_path):
+    """Every `heldout_every` steps: the n-pairs loss of `heldout_batches` fixed batches of TEST episodes, with
+    the network in eval mode (BatchNorm's running statistics), computed here by hand from the same plans; the
+    fitted weights are those of a fit without it, and the curve survives a kill."""
+    from mftcn_bench.encoders.losses import multiview_npairs_loss
+    from mftcn_bench.encoders.sampling import plan_batch
+
+    dataset = ensure_dataset(tmp_path / "d", synthetic_config(test_episodes=2), synthetic_collector,
+                             show_progress=False)
+    plain = make(frames=2)
+    plain_stats = plain.fit(dataset, FitBudget(6), lambda *a: None, tmp_path / "w1")
+    assert "heldout_loss" not in plain_stats
+    losses = []
+    watched = make(frames=2, heldout_every=4, heldout_batches=3)
+    stats = watched.fit(dataset, FitBudget(6), lambda s, t, st: losses.append(st["loss"]), tmp_path / "w2")
+    for p, q in zip(plain.net.parameters(), watched.net.parameters(), strict=True):
+        assert torch.equal(p, q)
+    for p, q in zip(plain.net.buffers(), watched.net.buffers(), strict=True):  # BatchNorm's statistics too
+        assert torch.equal(p, q)
+    curve = stats["curve"]
+    assert curve["step"] == [4.0, 6.0]  # every 4 steps, and at the end
+    assert curve["train_loss"] == pytest.approx([np.mean(losses[:4]), np.mean(losses[4:])])
+    assert stats["heldout_loss"] == curve["heldout_loss"][-1]
+
+    test = dataset.episodes("test")
+    rng = np.random.default_rng([0, 1])  # the fit's seed, then the held-out stream
+    plans = [plan_batch(rng, sorted(test), {i: dataset.episode_length(i) for i in test}, 4, 2, 2) for _ in range(3)]
+    pool = EpisodePool(dataset, len(test), 0, rng, members=list(test))
+    watched.net.eval()
+    by_hand = []
+    with torch.no_grad():
+        for plan in plans:
+            assert set(plan.episodes.tolist()) <= set(test)
+            clips = gather_clips(pool, plan.episodes, plan.times, frames=2, stride=1)
+            views, count = clips.shape[:2]
+            flat = torch.from_numpy(clips.reshape(views * count, *clips.shape[2:])).permute(0, 1, 4, 2, 3)
+            by_hand.append(float(multiview_npairs_loss(watched.net(flat).reshape(views, count, -1), 0.002)))
+    assert stats["heldout_loss"] == pytest.approx(np.mean(by_hand), rel=1e-5)
+
+    class Killed(Exception):
+        pass
+
+    def die_at_5(step, total, st):
+        if step == 5:
+            raise Killed
+
+    with pytest.raises(Killed):
+        make(frames=2, heldout_every=4, heldout_batches=3).fit(dataset, FitBudget(6), die_at_5, tmp_path / "w3")
+    resumed = make(frames=2, heldout_every=4, heldout_batches=3).fit(dataset, FitBudget(6), lambda *a: None,
+                                                                     tmp_path / "w3")
+    assert resumed["curve"]["heldout_loss"] == curve["heldout_loss"]

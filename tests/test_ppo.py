@@ -41,6 +41,20 @@ def test_same_seed_same_policy_and_curve(tmp_path):
     assert torch.equal(_params(nets_a), _params(nets_b))
 
 
+def test_each_batch_records_cleanrls_diagnostics(tmp_path):
+    """approx KL, clip fraction, explained variance and entropy, one value per batch, in their ranges; the
+    clip fraction is the share of steps whose ratio left [1 - eps, 1 + eps], so it is 0 in the first
+    minibatch and cannot exceed 1."""
+    _, state = _train(tmp_path)
+    assert sorted(state.diagnostics) == ["approx_kl", "clip_fraction", "entropy", "explained_variance"]
+    for name, column in state.diagnostics.items():
+        assert len(column) == state.batch == 6, name
+        assert all(np.isfinite(column)), name
+    assert all(0.0 <= c <= 1.0 for c in state.diagnostics["clip_fraction"])
+    assert all(e <= 1.0 for e in state.diagnostics["explained_variance"])
+    assert all(abs(kl) < 1.0 for kl in state.diagnostics["approx_kl"])
+
+
 def test_killed_run_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
     nets_a, state_a = _train(tmp_path / "a")
     with pytest.raises(Stop):
@@ -50,6 +64,7 @@ def test_killed_run_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
     assert checkpoint_progress(tmp_path / "b") == CheckpointProgress(240, state_a.curve_return[2])
     nets_b, state_b = _train(tmp_path / "b")
     assert state_b.curve_return == state_a.curve_return and state_b.batch == 6
+    assert state_b.diagnostics == state_a.diagnostics  # the checkpoint carries the diagnostics' curves
     assert torch.equal(_params(nets_a), _params(nets_b))
     make_env = state_env_factory(ENV)
     returns_a = evaluate_policy(make_env, nets_a, 3, 2, seed=3)
@@ -240,8 +255,11 @@ def test_one_update_on_a_fixed_batch_against_hand_computed_steps():
         def forward(self, td):
             self.sizes.append(td.shape[0])
             assert "advantage" in td.keys()
-            one = torch.ones(())
-            return TensorDict({"loss_objective": 100 * self.p.sum(), "loss_critic": one, "entropy": one / 2}, [])
+            one, k = torch.ones(()), len(self.sizes)
+            # the diagnostics torchrl's ClipPPOLoss reports, different in each minibatch k = 1..6
+            return TensorDict({"loss_objective": 100 * self.p.sum(), "loss_critic": one, "entropy": one / 2,
+                               "kl_approx": one * k / 100, "clip_fraction": one * k / 10,
+                               "explained_variance": torch.full((1,), 1.0 - k / 10)}, [])
 
     loss = FixedLoss()
     config = replace(PPO, epochs=2, minibatch_size=4, max_grad_norm=0.5, reward_scale=0.1)
@@ -252,6 +270,10 @@ def test_one_update_on_a_fixed_batch_against_hand_computed_steps():
     # Each step moves p by lr * 0.5 along -(1, 1, 1) / sqrt(3): the clipped gradient, 6 times.
     assert torch.allclose(loss.p.detach(), torch.full((3,), -6 * 0.5 / math.sqrt(3)), atol=1e-6)
     assert stats["loss_critic"] == 1.0 and stats["entropy"] == 0.5
+    # means over the 6 minibatches: (1 + ... + 6) / 6 = 3.5
+    assert math.isclose(stats["kl_approx"], 0.035, rel_tol=1e-6)
+    assert math.isclose(stats["clip_fraction"], 0.35, rel_tol=1e-6)
+    assert math.isclose(stats["explained_variance"], 0.65, rel_tol=1e-6)
     expected_objective = sum(100 * 3 * (-k * 0.5 / math.sqrt(3)) for k in range(6)) / 6
     assert math.isclose(stats["loss_objective"], expected_objective, rel_tol=1e-5)
 

@@ -28,6 +28,13 @@ def test_only_runs_of_the_current_specs_are_tabled():
     other_task["task"]["probe"]["epochs"] += 1
     assert not matches_current_specs(record(other_task))
     assert not matches_current_specs(record(config, encoder="uninstalled-plugin"))
+    # keys that only add diagnostics (the held-out loss) do not retire the runs recorded before them
+    older = copy.deepcopy(config)
+    del older["encoder"]["train"]["heldout_every"], older["encoder"]["train"]["heldout_batches"]
+    assert matches_current_specs(record(older))
+    other_diagnostics = copy.deepcopy(config)
+    other_diagnostics["encoder"]["train"]["heldout_batches"] += 1
+    assert matches_current_specs(record(other_diagnostics))
 
 
 # --- the paper tables, filled from synthetic stored runs -----------------------------------------------

@@ -77,7 +77,14 @@ class Withheld:
             f"true state is then ranked apart, as a reference)")
 
     def __getattr__(self, name: str) -> NoReturn:
+        if name.startswith("__") and name.endswith("__"):
+            # copy, pickle and numpy probe optional hooks by name; a missing hook is not a read of the input
+            raise AttributeError(name)
         self._refuse()
+
+    def __reduce__(self) -> tuple[type[Withheld], tuple[str, str]]:
+        # the marker crosses process boundaries (sweep workers, data loaders) as a marker
+        return Withheld, (self._what, self._encoder)
 
     __getitem__ = __array__ = __len__ = __iter__ = __bool__ = __float__ = __int__ = _refuse
     __add__ = __radd__ = __sub__ = __rsub__ = __mul__ = __rmul__ = __truediv__ = __matmul__ = _refuse

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -19,14 +19,14 @@ import numpy as np
 import torch
 
 from mftcn_bench.core.device import cuda_rng_state, restore_cuda_rng_state
-from mftcn_bench.core.errors import SpecError, TrainingError
+from mftcn_bench.core.errors import DataError, SpecError, TrainingError
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import Episode, MultiViewDataset
 from mftcn_bench.encoders.base import FitBudget, ProgressFn
 from mftcn_bench.encoders.common import load_failure, parse_table, save_payload
 from mftcn_bench.encoders.feature_cache import FeatureCache
 from mftcn_bench.encoders.losses import multiview_npairs_loss
-from mftcn_bench.encoders.sampling import plan_batch
+from mftcn_bench.encoders.sampling import BatchPlan, plan_batch
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,8 @@ class ContrastiveTrainConfig:
     pool_refresh_steps: int
     checkpoint_every: int
     max_seconds: float = 0.0  # 0: no wall-clock limit
+    heldout_every: int = 0    # steps between held-out n-pairs losses on test episodes (0: none)
+    heldout_batches: int = 0  # fixed batches of test episodes that loss averages over
 
     def __post_init__(self) -> None:
         check_optimizer(self)
@@ -98,10 +100,31 @@ def gather_clips(pool: EpisodePool, episodes: np.ndarray, times: np.ndarray, fra
     return np.stack(rows, axis=1)
 
 
+@dataclass
+class LossCurve:
+    """The fit's loss curve: at each evaluated step, the mean training loss since the previous point and the
+    held-out loss (`Evaluation`) at that step."""
+
+    step: list[float] = field(default_factory=list)
+    train_loss: list[float] = field(default_factory=list)
+    heldout_loss: list[float] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, list[float]]:
+        return {"step": self.step, "train_loss": self.train_loss, "heldout_loss": self.heldout_loss}
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """A held-out loss, computed every `every` steps with the network in eval mode and without gradients."""
+
+    every: int
+    loss: Callable[[], float]
+
+
 def _save_checkpoint(path: Path, net: torch.nn.Module, opt: torch.optim.Optimizer, step: int,
-                     rng: np.random.Generator, pool: EpisodePool) -> None:
+                     rng: np.random.Generator, pool: EpisodePool, curve: LossCurve) -> None:
     save_payload(path, {"model": net.state_dict(), "optimizer": opt.state_dict(), "step": step,
-                        "pool": sorted(pool.episodes),
+                        "pool": sorted(pool.episodes), "curve": json.dumps(curve.as_dict()),
                         "numpy_rng": json.dumps(rng.bit_generator.state),
                         "torch_rng": torch.get_rng_state(), "cuda_rng": cuda_rng_state()})
 
@@ -129,14 +152,17 @@ BatchLoss = Callable[[EpisodePool, np.random.Generator], tuple[torch.Tensor, dic
 
 def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopConfig, budget: FitBudget,
                  progress: ProgressFn, workdir: Path, *, seed: int, batch_loss: BatchLoss,
-                 load: EpisodeLoader | None = None, device: torch.device | None = None) -> dict[str, float]:
+                 load: EpisodeLoader | None = None, device: torch.device | None = None,
+                 evaluation: Evaluation | None = None) -> dict[str, Any]:
     """Adam on `batch_loss` for `budget.steps` steps, drawing batches from a pool of train episodes; `net`
     and `batch_loss` compute on `device` (checkpoints load onto it).
 
-    Checkpoints (model, optimizer, step, pool members, random states) go to `workdir/train_checkpoint.pt`
-    every `checkpoint_every` steps and training resumes from there bit for bit. A non-finite loss stops
-    training with the step. Returns {'final_loss', 'steps', 'seconds', 'resumed_from_step'} (0 unless a
-    checkpoint was found)."""
+    Checkpoints (model, optimizer, step, pool members, loss curve, random states) go to
+    `workdir/train_checkpoint.pt` every `checkpoint_every` steps and training resumes from there bit for bit.
+    A non-finite loss stops training with the step. Returns {'final_loss', 'steps', 'seconds',
+    'resumed_from_step'} (0 unless a checkpoint was found); with an `evaluation`, also 'heldout_loss' (at the
+    last step) and 'curve' (`LossCurve`). The evaluation draws no random numbers and changes no weights or
+    statistics, so the fitted network is the same with or without it."""
     check_optimizer(config)
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
@@ -144,7 +170,7 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
     opt = torch.optim.Adam(trainable, lr=config.lr, weight_decay=config.weight_decay)
     workdir.mkdir(parents=True, exist_ok=True)
     checkpoint = workdir / "train_checkpoint.pt"
-    start, members = 0, None
+    start, members, curve = 0, None, LossCurve()
     if checkpoint.exists():
         try:
             state = torch.load(checkpoint, weights_only=True, map_location=device or "cpu")
@@ -154,12 +180,27 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
             raise TrainingError(f"training checkpoint {checkpoint} cannot be loaded ({load_failure(exc)}); "
                                 f"rerun with --force (or delete it) to train from the start") from None
         start, members = int(state["step"]), [int(i) for i in state["pool"]]
+        if "curve" in state:  # absent in checkpoints written before the held-out loss
+            curve = LossCurve(**json.loads(state["curve"]))
         torch.set_rng_state(state["torch_rng"].cpu())
         restore_cuda_rng_state(state.get("cuda_rng"))
         rng.bit_generator.state = json.loads(state["numpy_rng"])
     pool = EpisodePool(dataset, config.episode_pool, config.pool_refresh_steps, rng, members, load)
     net.train()
     began, loss_value, done = time.monotonic(), float("nan"), start
+    since_point: list[float] = []
+
+    def evaluate(at: int) -> None:
+        assert evaluation is not None
+        net.eval()
+        with torch.no_grad():
+            heldout = evaluation.loss()
+        net.train()
+        curve.step.append(float(at))
+        curve.train_loss.append(float(np.mean(since_point)) if since_point else float("nan"))
+        curve.heldout_loss.append(heldout)
+        since_point.clear()
+
     for step in range(start, budget.steps):
         pool.step(step)
         loss, stats = batch_loss(pool, rng)
@@ -171,14 +212,22 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
         loss.backward()
         opt.step()
         done = step + 1
+        since_point.append(loss_value)
+        if evaluation is not None and evaluation.every and done % evaluation.every == 0:
+            evaluate(done)
         progress(done, budget.steps, {"loss": loss_value, **stats})
         if config.checkpoint_every and done % config.checkpoint_every == 0 and done < budget.steps:
-            _save_checkpoint(checkpoint, net, opt, done, rng, pool)
+            _save_checkpoint(checkpoint, net, opt, done, rng, pool, curve)
         if budget.max_seconds and time.monotonic() - began > budget.max_seconds:
             break
+    if evaluation is not None and evaluation.every and (not curve.step or curve.step[-1] != done):
+        evaluate(done)  # the fitted network's held-out loss, wherever the budget ended
     net.eval()
-    return {"final_loss": loss_value, "steps": float(done), "seconds": time.monotonic() - began,
-            "resumed_from_step": float(start)}
+    result: dict[str, Any] = {"final_loss": loss_value, "steps": float(done), "seconds": time.monotonic() - began,
+                              "resumed_from_step": float(start)}
+    if evaluation is not None and evaluation.every:
+        result.update(heldout_loss=curve.heldout_loss[-1], curve=curve.as_dict())
+    return result
 
 
 @runtime_checkable
@@ -191,10 +240,14 @@ class BaseFeatureHead(Protocol):
 def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: ContrastiveTrainConfig,
                     budget: FitBudget, progress: ProgressFn, workdir: Path, *, frames: int, stride: int,
                     seed: int, features: FeatureCache | None = None,
-                    device: torch.device | None = None) -> dict[str, float]:
+                    device: torch.device | None = None) -> dict[str, Any]:
     """Train `net` (uint8 clips [B, n, 3, H, W] -> [B, D]) with multi-view n-pairs; with `features`, on clips
     of cached base features through `net.head_on_base` (a `BaseFeatureHead`) instead of frames. Batches go
-    to `device` (where `net` is) once a step."""
+    to `device` (where `net` is) once a step.
+
+    With `heldout_every` and `heldout_batches` set and test episodes in the dataset, the n-pairs loss of
+    `heldout_batches` batches of test episodes, planned once from the seed as training plans its batches,
+    is recorded every `heldout_every` steps and at the end (`run_training`'s 'heldout_loss' and 'curve')."""
     target = device or torch.device("cpu")
     if len(dataset.cameras) < 2:
         raise SpecError("time-contrastive training needs a dataset with at least two camera views")
@@ -216,14 +269,36 @@ def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: Con
         def embed(batch: np.ndarray) -> torch.Tensor:
             return head.head_on_base(torch.from_numpy(batch).to(target))
 
+    def plan_loss(pool: EpisodePool, plan: BatchPlan) -> torch.Tensor:
+        clips = gather_clips(pool, plan.episodes, plan.times, frames, stride)
+        views, count = clips.shape[:2]
+        embeddings = embed(clips.reshape(views * count, *clips.shape[2:])).reshape(views, count, -1)
+        return multiview_npairs_loss(embeddings, config.reg_lambda)
+
     def batch_loss(pool: EpisodePool, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, float]]:
         lengths = {i: pool.length(i) for i in pool.episodes}
         plan = plan_batch(rng, sorted(pool.episodes), lengths, config.batch_timesteps,
                           config.episodes_per_batch, min_gap)
-        clips = gather_clips(pool, plan.episodes, plan.times, frames, stride)
-        views, count = clips.shape[:2]
-        embeddings = embed(clips.reshape(views * count, *clips.shape[2:])).reshape(views, count, -1)
-        return multiview_npairs_loss(embeddings, config.reg_lambda), {}
+        return plan_loss(pool, plan), {}
 
-    return run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss,
-                        load=load, device=device)
+    evaluation, skipped = None, None
+    test = dataset.episodes("test")
+    plans: list[BatchPlan] = []
+    if config.heldout_every and config.heldout_batches and test:
+        # Its own generator: the training batches are those of a fit without the held-out loss.
+        heldout_rng = np.random.default_rng([seed, 1])
+        lengths = {i: dataset.episode_length(i) for i in test}
+        try:
+            plans = [plan_batch(heldout_rng, sorted(test), lengths, config.batch_timesteps,
+                                config.episodes_per_batch, min_gap) for _ in range(config.heldout_batches)]
+        except DataError as exc:  # too few test frames for a training-sized batch (toy data): no loss, said so
+            skipped = f"no held-out loss: {exc}"
+    if plans:
+        used = sorted({int(e) for plan in plans for e in plan.episodes})  # loaded once, kept for the fit
+        heldout = EpisodePool(dataset, len(used), 0, heldout_rng, members=used, load=load)
+        evaluation = Evaluation(config.heldout_every,
+                                lambda: float(np.mean([float(plan_loss(heldout, plan)) for plan in plans])))
+
+    stats = run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss,
+                         load=load, device=device, evaluation=evaluation)
+    return stats if skipped is None else {**stats, "heldout": skipped}

@@ -46,9 +46,22 @@ def exclusion(record: RunRecord, varied: Sequence[str] = VARIED) -> str | None:
         _, config = resolve_config(encoder.spec, task.spec, record.preset, overrides)
     except (BenchError, KeyError, TypeError):
         return "a config today's specs cannot reproduce"
-    if config["encoder"] != record.config.get("encoder") or config["task"] != record.config.get("task"):
+    if (_without_diagnostics(config["encoder"]) != _without_diagnostics(record.config.get("encoder"))
+            or config["task"] != record.config.get("task")):
         return "older spec files or other overrides"
     return None
+
+
+# Spec keys that only add diagnostics to a record and change no fitted weight (tests/test_mftcn.py holds
+# the fit to that): a run recorded before they existed, or with other values, still counts.
+DIAGNOSTIC_KEYS: tuple[str, ...] = ("train.heldout_every", "train.heldout_batches")
+
+
+def _without_diagnostics(encoder: Any) -> Any:
+    if not isinstance(encoder, Mapping):
+        return encoder
+    train = {k: v for k, v in encoder.get("train", {}).items() if f"train.{k}" not in DIAGNOSTIC_KEYS}
+    return {**encoder, "train": train} if "train" in encoder else dict(encoder)
 
 
 def matches_current_specs(record: RunRecord) -> bool:

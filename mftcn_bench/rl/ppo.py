@@ -69,6 +69,11 @@ class PPOConfig:
     checkpoint_every: int = 10        # batches
 
 
+# Per-batch diagnostics: name -> the ClipPPOLoss output averaged over the batch's minibatches.
+DIAGNOSTICS: dict[str, str] = {"approx_kl": "kl_approx", "clip_fraction": "clip_fraction",
+                               "explained_variance": "explained_variance", "entropy": "entropy"}
+
+
 @dataclass
 class TrainState:
     batch: int = 0
@@ -77,9 +82,13 @@ class TrainState:
     curve_frames: list[float] = field(default_factory=list)
     curve_wall_s: list[float] = field(default_factory=list)
     curve_return: list[float] = field(default_factory=list)
+    # cleanrl's per-batch diagnostics (`DIAGNOSTICS`): a policy stuck in an optimum keeps a low KL and clip
+    # fraction with a critic that explains its returns; one that lacks information has a critic that cannot.
+    diagnostics: dict[str, list[float]] = field(default_factory=dict)
 
 
 Progress = Callable[[int, int, dict[str, float]], None]
+
 
 
 class RunningNormalizer(nn.Module):
@@ -231,6 +240,9 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
         state.curve_frames.append(float(state.frames))
         state.curve_wall_s.append(state.wall_s)
         state.curve_return.append(float(returns.mean()))
+        for name, key in DIAGNOSTICS.items():
+            if key in stats:  # the entropy only where the loss has an entropy bonus
+                state.diagnostics.setdefault(name, []).append(stats[key])
         if state.batch % config.checkpoint_every == 0 or state.batch == total_batches:
             _save_checkpoint(checkpoint, nets, optimizer, state)
         progress(state.batch, total_batches, {"return": float(returns.mean()), **stats})
@@ -259,7 +271,7 @@ def _update(batch, loss: ClipPPOLoss, advantage: GAE, optimizer: torch.optim.Opt
             total.backward()
             nn.utils.clip_grad_norm_(loss.parameters(), config.max_grad_norm)
             optimizer.step()
-            for key in ("loss_objective", "loss_critic", "entropy"):
+            for key in ("loss_objective", "loss_critic", *DIAGNOSTICS.values()):
                 if key in parts.keys():
                     totals[key] = totals.get(key, 0.0) + float(parts[key].detach().mean())
             count += 1

@@ -143,6 +143,9 @@ class PPOTask:
                                   min(self.ppo.num_envs, self.ppo.eval_episodes), self.seed, self.device)
         curves = {"train": {"frames": state.curve_frames, "wall_s": state.curve_wall_s,
                             "return": state.curve_return},
+                  # a run resumed from a checkpoint older than the diagnostics has them for part of its batches
+                  "ppo": {"frames": state.curve_frames, **{name: column for name, column in state.diagnostics.items()
+                                                           if len(column) == len(state.curve_frames)}},
                   "test": {"episode": [float(i) for i in range(len(returns))], "return": returns.tolist()}}
         # Over the test episodes, as the seeds' std: the sample std (ddof=1).
         metrics = {"return_mean": float(returns.mean()), "return_std": float(returns.std(ddof=1)),
