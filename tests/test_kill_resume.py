@@ -341,3 +341,35 @@ def test_a_checkpoint_without_its_completion_marker_is_fitted_again(tmp_path):
     assert first["fitted"] and encoder.fits == 1 and (workdir / "fit.json").exists()
     again = _fit_or_load(encoder, spec, None, workdir, False)
     assert again["reused"] and encoder.fits == 1 and encoder.loads == 1
+
+
+def test_an_exported_run_continues_in_another_home_to_the_uninterrupted_result(tmp_path):
+    """The machine dies after the first PPO checkpoint: `runs export` moves the run's folder to a directory,
+    `runs import` puts it into an empty home, and the same command finishes it there to the metrics (wall
+    clock aside) and curves of a run that was never interrupted."""
+    args = ["run", "--encoder", "true-state", "--task", "swingup", "--preset", "smoke", "--no-progress",
+            "--set", "task.dataset.train_episodes=1", "--set", "task.dataset.test_episodes=1",
+            "--set", "task.dataset.episode_length=10", "--set", "task.ppo.frames=1600"]
+    first, second, straight = tmp_path / "first", tmp_path / "second", tmp_path / "straight"
+    kill_when(first, args, lambda: bool(list(first.glob("runs/*/ppo_checkpoint.pt"))), timeout=240)
+    (run_dir,) = (p.parent for p in first.glob("runs/*/ppo_checkpoint.pt"))
+    done = torch.load(run_dir / "ppo_checkpoint.pt", weights_only=True)["state"]["batch"]
+    assert 1 <= done < 10
+
+    exported = cli(first, "runs", "export", run_dir.name, str(tmp_path / "moved"))
+    assert f"runs import {tmp_path / 'moved' / run_dir.name}" in exported.stdout
+    imported = cli(second, "runs", "import", str(tmp_path / "moved" / run_dir.name))
+    assert "reads no data, so it continues" in imported.stdout
+    cli(second, *args)
+    cli(straight, *args)
+    moved, uninterrupted = one_result(second), one_result(straight)
+    assert moved.run_id == uninterrupted.run_id == run_dir.name
+    wall_clock = {"train_wall_s", "train_fps"}
+    assert {k: v for k, v in moved.metrics.items() if k not in wall_clock} == \
+           {k: v for k, v in uninterrupted.metrics.items() if k not in wall_clock}
+    assert moved.curves["train"]["return"] == uninterrupted.curves["train"]["return"]
+    assert moved.curves["test"] == uninterrupted.curves["test"]
+    # the batches before the death were trained in the first home: their wall-clock readings came along
+    first_wall = done and moved.curves["train"]["wall_s"][:done]
+    assert first_wall == [float(w) for w in torch.load(tmp_path / "moved" / run_dir.name / "run" / "ppo_checkpoint.pt",
+                                                        weights_only=True)["state"]["curve_wall_s"]]

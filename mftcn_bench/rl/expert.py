@@ -1,13 +1,20 @@
-"""Expert policies for demonstration datasets: PPO on true state, trained once per config and cached.
+"""Expert policies for demonstration datasets: PPO on true state, pinned in the project or trained once.
 
 The cheetah task's encoder only ever sees an expert at work (the paper's protocol). The expert is a PPO
-policy trained on the simulator state with the task's `[expert_ppo]` settings; it is kept under the
-home's `experts/<key>/` (key: a hash of the environment, PPO settings and seed), trained under a lock
-so concurrent runs train it once, and resumed from its checkpoint after a kill.
+policy trained on the simulator state with the task's `[expert_ppo]` settings. The project ships the experts
+of its presets as committed files (`experts/` at the root, `mftcn_bench/specs/experts` in the package): the
+weights `<domain>-<task>-<config key>.pt` and a sidecar `.json` with their sha256 and what trained them (the
+config key hashes the environment as the state sees it, the PPO settings and the seed: not the code, so a
+refactor keeps the file). A pinned expert is loaded, never trained, and a data set recorded from it names
+the file's checksum, so every machine records its demonstrations from the same weights. An expert config
+with no pinned file (a smoke preset's toy expert, an override) is trained in the home's `experts/<key>/`
+(key: that config and the code), under a lock so concurrent runs train it once, resumed after a kill.
+`pin_expert` (`mftcn-bench expert train`) makes a pinned file on purpose.
 """
 
 from __future__ import annotations
 
+import importlib.resources
 import io
 import json
 from dataclasses import asdict
@@ -21,6 +28,7 @@ from torchrl.envs import TransformedEnv
 from mftcn_bench.core import identity
 from mftcn_bench.core.errors import TrainingError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
+from mftcn_bench.core.provenance import content_hash, file_sha256, versions
 from mftcn_bench.rl.observation import observed_env
 from mftcn_bench.rl.observers import StateObserver
 from mftcn_bench.rl.ppo import PolicyNetworks, PPOConfig, evaluate_policy, train_ppo
@@ -34,6 +42,48 @@ def expert_key(env: SuiteConfig, ppo: PPOConfig, seed: int) -> str:
     settings or rate, so a change of how demonstrations are filmed keeps the expert), PPO settings, seed."""
     stepped = {k: v for k, v in asdict(env).items() if k not in _FRAMES_ONLY}
     return identity.expert_key(stepped, asdict(ppo), seed)
+
+
+def expert_config_key(env: SuiteConfig, ppo: PPOConfig, seed: int) -> str:
+    """What trains an expert, without the code: the name of its pinned file."""
+    stepped = {k: v for k, v in asdict(env).items() if k not in _FRAMES_ONLY}
+    return content_hash({"env": stepped, "ppo": asdict(ppo), "seed": seed})
+
+
+def pinned_folder() -> Path:
+    """Where the project's pinned experts are (the package's `specs/experts`, the root's `experts/`)."""
+    return Path(str(importlib.resources.files("mftcn_bench") / "specs" / "experts"))
+
+
+def pinned_path(env: SuiteConfig, ppo: PPOConfig, seed: int, folder: Path | None = None) -> Path:
+    """The file a pinned expert of this config has (whether or not it exists)."""
+    return (folder or pinned_folder()) / f"{env.domain}-{env.task}-{expert_config_key(env, ppo, seed)}.pt"
+
+
+def pinned_expert(env: SuiteConfig, ppo: PPOConfig, seed: int, folder: Path | None = None) -> Path | None:
+    """The pinned expert of this config, its checksum checked against its sidecar (a truncated file or a
+    Git LFS pointer is refused in one line); None when the project pins none."""
+    path = pinned_path(env, ppo, seed, folder)
+    if not path.exists():
+        return None
+    sidecar = path.with_suffix(".json")
+    try:
+        expected = json.loads(sidecar.read_text())["sha256"]
+    except (OSError, ValueError, KeyError):
+        raise TrainingError(f"pinned expert {path.name} has no readable {sidecar.name} (its checksum); restore "
+                            f"both files from the repository, or remake them with `mftcn-bench expert train`") from None
+    if file_sha256(path) != expected:
+        raise TrainingError(f"pinned expert {path} does not match the checksum in {sidecar.name}; restore it "
+                            f"from the repository (a Git LFS pointer?) or remake it with `mftcn-bench expert "
+                            f"train --force`")
+    return path
+
+
+def expert_identity(env: SuiteConfig, ppo: PPOConfig, seed: int) -> str:
+    """What a data set recorded from this config's expert names: the pinned file's checksum, or (an expert
+    trained in the home) the training key, which holds the code."""
+    path = pinned_expert(env, ppo, seed)
+    return f"pinned-{file_sha256(path)[:16]}" if path is not None else expert_key(env, ppo, seed)
 
 
 def state_env_factory(env_config: SuiteConfig):
@@ -51,7 +101,15 @@ def state_env_factory(env_config: SuiteConfig):
 
 def ensure_expert(experts_dir: Path, env_config: SuiteConfig, ppo: PPOConfig, seed: int,
                   progress=lambda *args: None) -> Path:
-    """Path of the trained expert (`expert.pt`), training it first if needed."""
+    """Path of the expert's weights: the pinned file when the project pins this config, else the home's
+    `expert.pt`, training it first if needed."""
+    pinned = pinned_expert(env_config, ppo, seed)
+    return pinned if pinned is not None else train_expert(experts_dir, env_config, ppo, seed, progress)
+
+
+def train_expert(experts_dir: Path, env_config: SuiteConfig, ppo: PPOConfig, seed: int,
+                 progress=lambda *args: None) -> Path:
+    """Path of the home's trained expert (`expert.pt`, its summary beside it), training it first if needed."""
     workdir = experts_dir / f"{env_config.domain}-{env_config.task}-{expert_key(env_config, ppo, seed)}"
     path = workdir / "expert.pt"
     if path.exists():
@@ -71,6 +129,23 @@ def ensure_expert(experts_dir: Path, env_config: SuiteConfig, ppo: PPOConfig, se
         atomic_write_bytes(workdir / "expert.json", json.dumps(summary, indent=1).encode())
         atomic_write_bytes(path, buffer.getvalue())
     return path
+
+
+def pin_expert(trained: Path, env_config: SuiteConfig, ppo: PPOConfig, seed: int,
+               folder: Path | None = None) -> Path:
+    """Copy a home-trained expert (`train_expert`) to the pinned folder with its sidecar: the weights'
+    sha256, what trained them (environment, PPO settings, seed, library versions, CPU) and its test return.
+    Every data set recorded from an earlier pinned file of this config gets a new key."""
+    target = pinned_path(env_config, ppo, seed, folder)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    summary = json.loads((trained.parent / "expert.json").read_text())
+    stepped = {k: v for k, v in asdict(env_config).items() if k not in _FRAMES_ONLY}
+    sidecar = {"sha256": file_sha256(trained), "env": stepped, "ppo": asdict(ppo), "seed": seed,
+               "return_mean": summary["return_mean"], "return_std": summary["return_std"],
+               "test_episodes": summary["episodes"], "frames": summary["frames"], "versions": versions()}
+    atomic_write_bytes(target, trained.read_bytes())
+    atomic_write_bytes(target.with_suffix(".json"), json.dumps(sidecar, indent=1, sort_keys=True).encode())
+    return target
 
 
 class ExpertPolicy:

@@ -38,6 +38,7 @@ from mftcn_bench.encoders.bases import FrozenBase
 from mftcn_bench.encoders.feature_cache import ensure_feature_cache
 from mftcn_bench.encoders.privileged import dataset_for, declared_inputs
 from mftcn_bench.results.store import ResultStore, RunRecord
+from mftcn_bench.run.portable import plan_of, write_plan
 from mftcn_bench.sim.rendering import follow_device
 from mftcn_bench.tasks.base import ChecksEncoder, NeedsArtifacts, OnlineTask, ShowsProgress, Task
 
@@ -360,6 +361,12 @@ def _run_once(prepared: PreparedRun, home: BenchHome, show_progress: bool, began
         encoder, fit = build_encoder(prepared, dataset, home, show_progress,
                                      fit_dir=run_dir / "encoder" if request.force else None)
         after_fit = time.monotonic()
+        if not request.force:  # what `runs export` needs to move the run to another home from here on
+            shared = Path(fit["checkpoint"]).parent if "checkpoint" in fit else None
+            write_plan(run_dir, plan_of(run_id, list(request.overrides), encoder=request.encoder, task=request.task,
+                                        preset=prepared.preset, seed=request.seed,
+                                        dataset=None if dataset is None else dataset.fingerprint,
+                                        encoder_dir=None if shared is None else shared.name))
         if isinstance(prepared.task, ShowsProgress):
             prepared.task.show_progress(show_progress)
         if dataset is None and isinstance(prepared.task, OnlineTask):  # only such a run reads no data

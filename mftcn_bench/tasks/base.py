@@ -12,6 +12,8 @@ from mftcn_bench.encoders.base import Encoder
 
 if TYPE_CHECKING:
     from mftcn_bench.core.home import BenchHome
+    from mftcn_bench.rl.ppo import PPOConfig
+    from mftcn_bench.rl.suite_env import SuiteConfig
 
 # Learning curves: name -> columns of equal length, e.g.
 # {"train": {"frames": [...], "wall_s": [...], "return": [...]}}.
@@ -74,6 +76,15 @@ class NeedsArtifacts(Protocol):
     policy); the runner calls `prepare_artifacts` first."""
 
     def prepare_artifacts(self, home: BenchHome, show_progress: bool = True) -> None: ...
+
+
+@runtime_checkable
+class RecordsExpert(Protocol):
+    """A task whose data are a true-state expert's demonstrations: what trains that expert (its environment
+    as the state sees it, its PPO settings, its seed), for `mftcn-bench expert train`."""
+
+    @property
+    def expert_setup(self) -> tuple[SuiteConfig, PPOConfig, int]: ...
 
 
 @runtime_checkable

@@ -38,7 +38,7 @@ from mftcn_bench.data.cartpole import TARGETS, collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder, trains_with_policy, uses_pixels
 from mftcn_bench.rl.demos import ExpertDemoCollector
-from mftcn_bench.rl.expert import ensure_expert, expert_key
+from mftcn_bench.rl.expert import ensure_expert, expert_identity
 from mftcn_bench.rl.observation import PixelClip, Readout, observed_env
 from mftcn_bench.rl.observers import make_observer
 from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
@@ -222,8 +222,9 @@ class ProbeStateControlTask(PPOTask):
 class ExpertDemoControlTask(ControlTask):
     """A control task whose encoder learns from an expert's demonstrations only (cheetah).
 
-    The expert (PPO on true state, `[expert_ppo]`) is trained once and cached under the home's
-    `experts/`; the dataset records its episodes from every camera of `[dataset]`.
+    The expert (PPO on true state, `[expert_ppo]`) is the project's pinned file for this config, or trained
+    once and cached under the home's `experts/` (`rl.expert`); the dataset records its episodes from every
+    camera of `[dataset]`.
     """
 
     def __init__(self, config: Mapping[str, Any], seed: int) -> None:
@@ -236,9 +237,14 @@ class ExpertDemoControlTask(ControlTask):
         self._expert_path: Path | None = None
 
     @property
+    def expert_setup(self) -> tuple[SuiteConfig, PPOConfig, int]:
+        """The expert's environment, PPO settings and seed (`tasks.base.RecordsExpert`)."""
+        return self.expert_env, self.expert_ppo, self.expert_seed
+
+    @property
     def dataset_config(self) -> Mapping[str, Any]:
         # The expert's identity is part of the data's: another expert gives another dataset.
-        return {**self.config["dataset"], "expert": expert_key(self.expert_env, self.expert_ppo, self.expert_seed)}
+        return {**self.config["dataset"], "expert": expert_identity(self.expert_env, self.expert_ppo, self.expert_seed)}
 
     def prepare_artifacts(self, home: BenchHome, show_progress: bool = True) -> None:
         """Train (or find) the expert before the dataset is collected from it."""

@@ -42,7 +42,7 @@ from mftcn_bench.data.cartpole import collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset, ensure_dataset
 from mftcn_bench.encoders.base import Encoder, embed_episode, trains_with_policy, uses_pixels
 from mftcn_bench.rl.demos import ExpertDemoCollector, StatePolicy
-from mftcn_bench.rl.expert import ExpertPolicy, ensure_expert, expert_key
+from mftcn_bench.rl.expert import ExpertPolicy, ensure_expert, expert_identity
 from mftcn_bench.rl.observation import observed_env
 from mftcn_bench.rl.observers import make_observer
 from mftcn_bench.rl.ppo import EVAL_SEED_OFFSET, PPOConfig
@@ -183,6 +183,11 @@ class ImitationTask:
 
     # -- the expert and its demonstrations --------------------------------------------------------------
     @property
+    def expert_setup(self) -> tuple[SuiteConfig, PPOConfig, int]:
+        """The expert's environment, PPO settings and seed (`tasks.base.RecordsExpert`)."""
+        return self.expert_env, self.expert_ppo, self.demos.expert_seed
+
+    @property
     def demos_config(self) -> dict[str, Any]:
         """The demonstrations' data set: the expert's episodes at the encoder data's size, render settings
         and frame rate, keyed by the expert (another expert records other demonstrations)."""
@@ -194,7 +199,7 @@ class ImitationTask:
                 "height": data["height"], "width": data["width"], "train_episodes": demos.episodes,
                 "test_episodes": demos.test_episodes, "episode_length": demos.episode_length,
                 "action_repeat": data["action_repeat"], "seed": demos.seed, "render": data["render"],
-                "expert": expert_key(self.expert_env, self.expert_ppo, demos.expert_seed), **noise}
+                "expert": expert_identity(self.expert_env, self.expert_ppo, demos.expert_seed), **noise}
 
     def show_progress(self, enabled: bool) -> None:
         """The expert's PPO bar and the demonstrations' collection bar (`tasks.base.ShowsProgress`)."""
@@ -334,8 +339,8 @@ class ExpertDataImitationTask(ImitationTask):
     @property
     def dataset_config(self) -> Mapping[str, Any]:
         # As `tasks.control.ExpertDemoControlTask`: the expert's identity is part of the data's.
-        return {**self.config["dataset"], "expert": expert_key(self.expert_env, self.expert_ppo,
-                                                                self.demos.expert_seed)}
+        return {**self.config["dataset"], "expert": expert_identity(self.expert_env, self.expert_ppo,
+                                                                     self.demos.expert_seed)}
 
     @property
     def collector(self) -> Collector:

@@ -1,0 +1,83 @@
+"""Pinned experts: a committed expert file is loaded, never trained; the data set recorded from it names its
+checksum; `mftcn-bench expert train` makes one on purpose."""
+
+import json
+
+import pytest
+import torch
+
+from mftcn_bench.cli import main
+from mftcn_bench.core.errors import TrainingError
+from mftcn_bench.core.home import BenchHome
+from mftcn_bench.data.dataset import MultiViewDataset
+from mftcn_bench.rl import expert as experts
+from mftcn_bench.run.runner import RunRequest, prepare
+
+CHEETAH_SMOKE = ["cheetah", "--preset", "smoke", "--set", "task.dataset.train_episodes=2",
+                 "--set", "task.dataset.test_episodes=1", "--set", "task.dataset.episode_length=20"]
+
+
+@pytest.fixture
+def pinned(tmp_path, monkeypatch):
+    """An empty pinned-experts folder of the project (the real one holds the presets' experts)."""
+    folder = tmp_path / "pinned"
+    folder.mkdir()
+    monkeypatch.setattr(experts, "pinned_folder", lambda: folder)
+    return folder
+
+
+def cheetah_task():
+    return prepare(RunRequest("mftcn5", "cheetah", "smoke")).task
+
+
+def collected(home) -> list[MultiViewDataset]:
+    return [MultiViewDataset(p) for p in (home / "datasets").glob("cheetah-expert-*") if (p / "manifest.json").exists()]
+
+
+def test_expert_train_pins_a_file_that_fresh_homes_record_from_without_training(tmp_path, pinned, capsys):
+    trainer = tmp_path / "trainer"
+    assert main(["expert", "train", "--task", "cheetah", "--preset", "smoke", "--home", str(trainer)]) == 0
+    out = capsys.readouterr().out
+    env, ppo, seed = cheetah_task().expert_setup
+    path = experts.pinned_path(env, ppo, seed)
+    assert path.parent == pinned and f"pinned {path}" in out and "new key" in out
+    sidecar = json.loads(path.with_suffix(".json").read_text())
+    assert sidecar["sha256"] == experts.file_sha256(path) and sidecar["seed"] == seed
+    assert sidecar["ppo"]["frames"] == 320  # the smoke preset's expert settings
+    # pinned again without --force: refused before any training
+    assert main(["expert", "train", "--task", "cheetah", "--preset", "smoke", "--home", str(trainer)]) == 2
+    assert "--force" in capsys.readouterr().err
+
+    homes = [tmp_path / "fresh-a", tmp_path / "fresh-b"]
+    for home in homes:
+        assert main(["data", "collect", *CHEETAH_SMOKE, "--home", str(home), "--no-progress"]) == 0
+        assert not list(BenchHome(home).experts.glob("*/expert.pt"))  # nothing trained in the home
+    (first,), (second,) = (collected(home) for home in homes)
+    assert first.config["expert"] == f"pinned-{sidecar['sha256'][:16]}"
+    assert first.fingerprint == second.fingerprint  # two recordings from one file: the same frames and states
+
+
+def test_another_expert_file_gives_the_data_another_key_and_a_damaged_one_is_refused(tmp_path, pinned):
+    task = cheetah_task()
+    env, ppo, seed = task.expert_setup
+    unpinned = dict(task.dataset_config)
+    assert unpinned["expert"] == experts.expert_key(env, ppo, seed)  # trained in the home: the training key
+    trained = experts.train_expert(tmp_path / "home", env, ppo, seed)
+    path = experts.pin_expert(trained, env, ppo, seed)
+    first = dict(task.dataset_config)
+    assert first["expert"].startswith("pinned-") and first != unpinned
+    weights = torch.load(path, weights_only=True)
+    for value in weights["nets"].values():
+        value.add_(0.01) if value.is_floating_point() else None
+    torch.save(weights, path)
+    with pytest.raises(TrainingError, match="does not match the checksum"):
+        experts.ensure_expert(tmp_path / "home", env, ppo, seed)
+    sidecar = json.loads(path.with_suffix(".json").read_text())
+    sidecar["sha256"] = experts.file_sha256(path)  # remade on purpose: a new, valid pinned expert
+    path.with_suffix(".json").write_text(json.dumps(sidecar))
+    second = dict(task.dataset_config)
+    assert second["expert"] != first["expert"] and second["expert"].startswith("pinned-")
+    from mftcn_bench.data.dataset import dataset_id
+
+    assert dataset_id(first, task.collector) != dataset_id(second, task.collector)
+    assert experts.ensure_expert(tmp_path / "home", env, ppo, seed) == path
