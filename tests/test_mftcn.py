@@ -152,3 +152,33 @@ def test_the_heldout_loss_is_the_test_episodes_loss_in_eval_mode_and_changes_no_
     resumed = make(frames=2, heldout_every=4, heldout_batches=3).fit(dataset, FitBudget(6), lambda *a: None,
                                                                      tmp_path / "w3")
     assert resumed["curve"]["heldout_loss"] == curve["heldout_loss"]
+
+
+def test_spatial_softargmax_is_the_expected_position_under_a_softmax_over_the_map():
+    from mftcn_bench.encoders.mftcn import spatial_softargmax
+
+    maps = torch.randn(2, 3, 4, 5, dtype=torch.float64)
+    out = spatial_softargmax(maps).numpy()
+    for b in range(2):
+        for c in range(3):
+            p = np.exp(maps[b, c].numpy())
+            p /= p.sum()
+            rows, cols = np.meshgrid(np.linspace(-1, 1, 4), np.linspace(-1, 1, 5), indexing="ij")
+            assert out[b, c] == pytest.approx((p * cols).sum()) and out[b, 3 + c] == pytest.approx((p * rows).sum())
+    peak = torch.full((1, 1, 3, 3), -50.0)
+    peak[0, 0, 2, 0] = 50.0  # bottom-left cell: x = -1, y = +1
+    assert spatial_softargmax(peak)[0].tolist() == pytest.approx([-1.0, 1.0])
+
+
+def test_the_head_candidates_keep_the_papers_head_by_default_and_change_only_what_they_name():
+    default = make(frames=2, dim=4).net
+    assert default.temporal.kernel_size == (2, 3, 3) and default.fc.in_features == 8  # MODEL's temporal_channels
+    wide = MfTCNEncoder(EncoderSpec("t", "mftcn", "test", 2, 1, 4, {**MODEL, "temporal_kernel": 5,
+                                                                     "spatial_pool": "mean+softargmax"}, TRAIN),
+                        image_shape=(16, 24), seed=0)
+    assert wide.net.temporal.kernel_size == (2, 5, 5) and wide.net.fc.in_features == 24
+    clips = np.random.default_rng(0).integers(0, 255, (3, 2, 16, 24, 3), dtype=np.uint8)
+    assert wide.embed(ClipBatch(clips)).shape == (3, 4)
+    for bad in ({"temporal_kernel": 4}, {"spatial_pool": "max"}):
+        with pytest.raises(Exception, match="temporal_kernel|spatial_pool"):
+            MfTCNEncoder(EncoderSpec("t", "mftcn", "test", 2, 1, 4, {**MODEL, **bad}, TRAIN), (16, 24), 0)

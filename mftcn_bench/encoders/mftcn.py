@@ -59,6 +59,14 @@ class MfTCNModelConfig:
     base: BaseConfig
     adapter_channels: int
     temporal_channels: int
+    # Candidates for the wide views (docs/ENCODERS.md); the defaults are the paper's head. The 3D
+    # convolution's spatial kernel (odd): its reach on the base's map, one cell of which spans a third of a
+    # metre of the scene at 160x160 against a metre at 96x48.
+    temporal_kernel: int = 3
+    # How the head pools the clip's map: "mean" (the paper's mfTCN) or "mean+softargmax" (beside the mean,
+    # each channel's expected x and y under a softmax over the map, the original TCN's spatial softmax: where
+    # things are, which a mean over a 10x10 map nearly discards).
+    spatial_pool: str = "mean"
 
     @classmethod
     def from_table(cls, encoder: str, table: dict[str, Any]) -> MfTCNModelConfig:
@@ -66,7 +74,25 @@ class MfTCNModelConfig:
         if config.adapter_channels < 0 or config.temporal_channels < 1:
             raise SpecError(f"encoder {encoder!r}: [model] adapter_channels must be >= 0 and temporal_channels "
                             f">= 1, got {config.adapter_channels} and {config.temporal_channels}")
+        if config.temporal_kernel < 1 or config.temporal_kernel % 2 == 0:
+            raise SpecError(f"encoder {encoder!r}: [model] temporal_kernel must be an odd number >= 1, got "
+                            f"{config.temporal_kernel}")
+        if config.spatial_pool not in POOLS:
+            raise SpecError(f"encoder {encoder!r}: [model] spatial_pool must be one of {', '.join(POOLS)}, got "
+                            f"{config.spatial_pool!r}")
         return config
+
+
+POOLS = ("mean", "mean+softargmax")
+
+
+def spatial_softargmax(maps: torch.Tensor) -> torch.Tensor:
+    """[B, C, h, w] -> [B, 2C]: each channel's expected (x, y) in [-1, 1] under a softmax over its map."""
+    b, c, h, w = maps.shape
+    weights = torch.softmax(maps.reshape(b, c, h * w), dim=-1).reshape(b, c, h, w)
+    xs = torch.linspace(-1.0, 1.0, w, device=maps.device, dtype=maps.dtype)
+    ys = torch.linspace(-1.0, 1.0, h, device=maps.device, dtype=maps.dtype)
+    return torch.cat([(weights.sum(2) * xs).sum(-1), (weights.sum(3) * ys).sum(-1)], dim=1)
 
 
 def frame_adapter(in_channels: int, channels: list[int]) -> nn.Module:
@@ -122,13 +148,19 @@ class MfTCNNet(OnBaseNet):
         channels = base_channels(self.base)
         adapter = [config.adapter_channels] if config.adapter_channels else []
         self.adapter = frame_adapter(channels, adapter)
+        k = config.temporal_kernel
         self.temporal = nn.Conv3d(config.adapter_channels or channels, config.temporal_channels,
-                                  kernel_size=(frames, 3, 3), padding=(0, 1, 1))
-        self.fc = nn.Linear(config.temporal_channels, embedding_dim)
+                                  kernel_size=(frames, k, k), padding=(0, k // 2, k // 2))
+        self.softargmax = config.spatial_pool == "mean+softargmax"
+        pooled = config.temporal_channels * (3 if self.softargmax else 1)
+        self.fc = nn.Linear(pooled, embedding_dim)
 
     def head(self, features: torch.Tensor) -> torch.Tensor:
         phi = torch.relu(self.temporal(features.transpose(1, 2)))  # [B, C', 1, h, w]
-        return self.fc(phi.mean(dim=(2, 3, 4)))
+        pooled = phi.mean(dim=(2, 3, 4))
+        if self.softargmax:
+            pooled = torch.cat([pooled, spatial_softargmax(phi[:, :, 0])], dim=1)
+        return self.fc(pooled)
 
 
 class OnBaseEncoder(FrameHeadEncoder):
