@@ -48,6 +48,9 @@ def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encod
     assert all(0.0 <= r <= env["episode_length"] for r in [*test_returns, *curve["return"]])
     assert curve["frames"] == [float(batch_frames * (k + 1)) for k in range(batches)]  # one point per batch
     assert len(curve["wall_s"]) == batches and sorted(curve["wall_s"]) == curve["wall_s"]
+    if encoder == "mftcn5" and task == "swingup":  # the fit's held-out n-pairs loss curve, from the encoder's folder
+        assert record.curves["fit"]["step"][-1] == record.config["fit"]["steps"]
+        assert record.curves["fit"]["heldout_loss"][-1] == record.config["fit"]["heldout_loss"]
     diagnostics = record.curves["ppo"]  # cleanrl's per-batch diagnostics beside the learning curve
     assert diagnostics["frames"] == curve["frames"]
     assert {"approx_kl", "clip_fraction", "explained_variance"} <= set(diagnostics)

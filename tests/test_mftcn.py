@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -7,7 +9,7 @@ from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.dataset import ensure_dataset
 from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.encoders import training
-from mftcn_bench.encoders.base import ClipBatch, FitBudget, embed_episode
+from mftcn_bench.encoders.base import FIT_CURVE, ClipBatch, FitBudget, embed_episode
 from mftcn_bench.encoders.mftcn import MfTCNEncoder
 from mftcn_bench.encoders.training import EpisodePool, gather_clips
 
@@ -120,7 +122,9 @@ def test_the_heldout_loss_is_the_test_episodes_loss_in_eval_mode_and_changes_no_
         assert torch.equal(p, q)
     for p, q in zip(plain.net.buffers(), watched.net.buffers(), strict=True):  # BatchNorm's statistics too
         assert torch.equal(p, q)
-    curve = stats["curve"]
+    assert all(isinstance(v, float) for v in stats.values())  # the contract: summary statistics only
+    curve = json.loads((tmp_path / "w2" / FIT_CURVE).read_text())  # the curve, for the run's record
+    assert not (tmp_path / "w1" / FIT_CURVE).exists()
     assert curve["step"] == [4.0, 6.0]  # every 4 steps, and at the end
     assert curve["train_loss"] == pytest.approx([np.mean(losses[:4]), np.mean(losses[4:])])
     assert stats["heldout_loss"] == curve["heldout_loss"][-1]
@@ -149,9 +153,8 @@ def test_the_heldout_loss_is_the_test_episodes_loss_in_eval_mode_and_changes_no_
 
     with pytest.raises(Killed):
         make(frames=2, heldout_every=4, heldout_batches=3).fit(dataset, FitBudget(6), die_at_5, tmp_path / "w3")
-    resumed = make(frames=2, heldout_every=4, heldout_batches=3).fit(dataset, FitBudget(6), lambda *a: None,
-                                                                     tmp_path / "w3")
-    assert resumed["curve"]["heldout_loss"] == curve["heldout_loss"]
+    make(frames=2, heldout_every=4, heldout_batches=3).fit(dataset, FitBudget(6), lambda *a: None, tmp_path / "w3")
+    assert json.loads((tmp_path / "w3" / FIT_CURVE).read_text())["heldout_loss"] == curve["heldout_loss"]
 
 
 def test_spatial_softargmax_is_the_expected_position_under_a_softmax_over_the_map():

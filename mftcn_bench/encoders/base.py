@@ -60,6 +60,9 @@ class FitBudget:
     max_seconds: float | None = None
 
 
+# A fit's learning curve in its workdir: {"step": [...], "<measure>": [...], ...}.
+FIT_CURVE = "fit_curve.json"
+
 # progress(step, total_steps, {"loss": ...}) is called as training goes.
 ProgressFn = Callable[[int, int, dict[str, float]], None]
 
@@ -79,7 +82,9 @@ class Encoder(Protocol):
     def fit(self, dataset: MultiViewDataset, budget: FitBudget, progress: ProgressFn,
             workdir: Path) -> dict[str, float]:
         """Train on the dataset's train split; may checkpoint into `workdir` and resume from it.
-        Returns summary statistics (for example the final loss)."""
+        Returns summary statistics (for example the final loss). A learning curve goes to
+        `workdir / FIT_CURVE` (JSON columns of equal length), which the runner records as the run's `fit`
+        curve."""
         ...
 
     def embed(self, clips: ClipBatch) -> np.ndarray:

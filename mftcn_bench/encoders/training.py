@@ -20,9 +20,10 @@ import torch
 
 from mftcn_bench.core.device import cuda_rng_state, restore_cuda_rng_state
 from mftcn_bench.core.errors import DataError, SpecError, TrainingError
+from mftcn_bench.core.fileio import atomic_write_bytes
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import Episode, MultiViewDataset
-from mftcn_bench.encoders.base import FitBudget, ProgressFn
+from mftcn_bench.encoders.base import FIT_CURVE, FitBudget, ProgressFn
 from mftcn_bench.encoders.common import load_failure, parse_table, save_payload
 from mftcn_bench.encoders.feature_cache import FeatureCache
 from mftcn_bench.encoders.losses import multiview_npairs_loss
@@ -153,7 +154,7 @@ BatchLoss = Callable[[EpisodePool, np.random.Generator], tuple[torch.Tensor, dic
 def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopConfig, budget: FitBudget,
                  progress: ProgressFn, workdir: Path, *, seed: int, batch_loss: BatchLoss,
                  load: EpisodeLoader | None = None, device: torch.device | None = None,
-                 evaluation: Evaluation | None = None) -> dict[str, Any]:
+                 evaluation: Evaluation | None = None) -> dict[str, float]:
     """Adam on `batch_loss` for `budget.steps` steps, drawing batches from a pool of train episodes; `net`
     and `batch_loss` compute on `device` (checkpoints load onto it).
 
@@ -161,8 +162,8 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
     `workdir/train_checkpoint.pt` every `checkpoint_every` steps and training resumes from there bit for bit.
     A non-finite loss stops training with the step. Returns {'final_loss', 'steps', 'seconds',
     'resumed_from_step'} (0 unless a checkpoint was found); with an `evaluation`, also 'heldout_loss' (at the
-    last step) and 'curve' (`LossCurve`). The evaluation draws no random numbers and changes no weights or
-    statistics, so the fitted network is the same with or without it."""
+    last step), and the `LossCurve` goes to `workdir / FIT_CURVE`. The evaluation draws no random numbers and
+    changes no weights or statistics, so the fitted network is the same with or without it."""
     check_optimizer(config)
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
@@ -223,10 +224,11 @@ def run_training(net: torch.nn.Module, dataset: MultiViewDataset, config: LoopCo
     if evaluation is not None and evaluation.every and (not curve.step or curve.step[-1] != done):
         evaluate(done)  # the fitted network's held-out loss, wherever the budget ended
     net.eval()
-    result: dict[str, Any] = {"final_loss": loss_value, "steps": float(done), "seconds": time.monotonic() - began,
-                              "resumed_from_step": float(start)}
+    result = {"final_loss": loss_value, "steps": float(done), "seconds": time.monotonic() - began,
+              "resumed_from_step": float(start)}
     if evaluation is not None and evaluation.every:
-        result.update(heldout_loss=curve.heldout_loss[-1], curve=curve.as_dict())
+        result["heldout_loss"] = curve.heldout_loss[-1]
+        atomic_write_bytes(workdir / FIT_CURVE, json.dumps(curve.as_dict()).encode())
     return result
 
 
@@ -240,14 +242,15 @@ class BaseFeatureHead(Protocol):
 def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: ContrastiveTrainConfig,
                     budget: FitBudget, progress: ProgressFn, workdir: Path, *, frames: int, stride: int,
                     seed: int, features: FeatureCache | None = None,
-                    device: torch.device | None = None) -> dict[str, Any]:
+                    device: torch.device | None = None) -> dict[str, float]:
     """Train `net` (uint8 clips [B, n, 3, H, W] -> [B, D]) with multi-view n-pairs; with `features`, on clips
     of cached base features through `net.head_on_base` (a `BaseFeatureHead`) instead of frames. Batches go
     to `device` (where `net` is) once a step.
 
     With `heldout_every` and `heldout_batches` set and test episodes in the dataset, the n-pairs loss of
     `heldout_batches` batches of test episodes, planned once from the seed as training plans its batches,
-    is recorded every `heldout_every` steps and at the end (`run_training`'s 'heldout_loss' and 'curve')."""
+    is recorded every `heldout_every` steps and at the end (`run_training`'s 'heldout_loss' and curve); with
+    too few test frames for a batch of the training's size (toy data) there is none."""
     target = device or torch.device("cpu")
     if len(dataset.cameras) < 2:
         raise SpecError("time-contrastive training needs a dataset with at least two camera views")
@@ -281,7 +284,7 @@ def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: Con
                           config.episodes_per_batch, min_gap)
         return plan_loss(pool, plan), {}
 
-    evaluation, skipped = None, None
+    evaluation = None
     test = dataset.episodes("test")
     plans: list[BatchPlan] = []
     if config.heldout_every and config.heldout_batches and test:
@@ -291,14 +294,13 @@ def train_multiview(net: torch.nn.Module, dataset: MultiViewDataset, config: Con
         try:
             plans = [plan_batch(heldout_rng, sorted(test), lengths, config.batch_timesteps,
                                 config.episodes_per_batch, min_gap) for _ in range(config.heldout_batches)]
-        except DataError as exc:  # too few test frames for a training-sized batch (toy data): no loss, said so
-            skipped = f"no held-out loss: {exc}"
+        except DataError:  # too few test frames for a batch of the training's size (toy data)
+            plans = []
     if plans:
         used = sorted({int(e) for plan in plans for e in plan.episodes})  # loaded once, kept for the fit
         heldout = EpisodePool(dataset, len(used), 0, heldout_rng, members=used, load=load)
         evaluation = Evaluation(config.heldout_every,
                                 lambda: float(np.mean([float(plan_loss(heldout, plan)) for plan in plans])))
 
-    stats = run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss,
-                         load=load, device=device, evaluation=evaluation)
-    return stats if skipped is None else {**stats, "heldout": skipped}
+    return run_training(net, dataset, config, budget, progress, workdir, seed=seed, batch_loss=batch_loss,
+                        load=load, device=device, evaluation=evaluation)

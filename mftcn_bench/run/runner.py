@@ -33,7 +33,7 @@ from mftcn_bench.core.home import BenchHome
 from mftcn_bench.core.provenance import canonical_json, content_hash, versions, warn_if_dirty
 from mftcn_bench.core.specs import EncoderSpec, encoder_spec_from_config, resolve_config
 from mftcn_bench.data.dataset import MultiViewDataset, check_dataset_config, dataset_id, ensure_dataset
-from mftcn_bench.encoders.base import Encoder, FeatureCacheUser, FitBudget, MultiViewTrainer
+from mftcn_bench.encoders.base import FIT_CURVE, Encoder, FeatureCacheUser, FitBudget, MultiViewTrainer
 from mftcn_bench.encoders.bases import FrozenBase
 from mftcn_bench.encoders.feature_cache import ensure_feature_cache
 from mftcn_bench.encoders.privileged import dataset_for, declared_inputs
@@ -317,6 +317,14 @@ def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset,
     return {"fitted": True, "reused": False, "checkpoint": str(model_path), **fit_stats}
 
 
+def fit_curve(fit: Mapping[str, Any]) -> dict[str, list[float]] | None:
+    """The learning curve the fit behind `fit` (build_encoder's record of it) wrote, if any."""
+    if "checkpoint" not in fit:
+        return None
+    path = Path(fit["checkpoint"]).parent / FIT_CURVE
+    return json.loads(path.read_text()) if path.exists() else None
+
+
 class RerunWarning(BenchWarning):
     """`--force` gave a result that differs from the stored run of the same id."""
 
@@ -378,6 +386,9 @@ def _run_once(prepared: PreparedRun, home: BenchHome, show_progress: bool, began
             shutil.rmtree(run_dir, ignore_errors=True)
         raise
     done = time.monotonic()
+    curves = result.curves
+    if (fitted := fit_curve(fit)) is not None:
+        curves = {**curves, "fit": fitted}
     placement_notes = [] if fit["device"] == prepared.placement.device else [
         f"encoder {request.encoder!r} has no to_device: it ran on the CPU, the task on {prepared.placement.device}"]
     if "train" in result.curves:  # the learning curve beside the result (matplotlib only when needed)
@@ -411,7 +422,7 @@ def _run_once(prepared: PreparedRun, home: BenchHome, show_progress: bool, began
                  "evaluate_s": done - after_fit, "total_s": done - began},
         artifacts=str(final_dir),
         created_at=datetime.now(UTC).isoformat(timespec="seconds"),
-        curves=result.curves,
+        curves=curves,
     )
     try:
         atomic_write_bytes(run_dir / "result.json", json.dumps(asdict(record), indent=1, sort_keys=True).encode())
