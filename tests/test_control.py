@@ -79,7 +79,7 @@ def _test_returns_by_hand(task: str, record, run_dir) -> list[float]:
 
     prepared = prepare(RunRequest("true-state", task, record.preset, record.seed))
     control, encoder = prepared.task, prepared.untrained[0]  # true-state fits nothing
-    make_env, _ = control._env_factory(encoder)
+    make_env, _ = control.env_factory(encoder)
     ppo, steps = control.ppo, control.env_config.agent_steps
     n = min(ppo.num_envs, ppo.eval_episodes)
     env = make_env(n, record.seed + EVAL_SEED_OFFSET)

@@ -1,14 +1,15 @@
 """Imports point one way: a module never imports from a layer above its own (lazy imports included).
 
-Layers, lowest first: the run core, simulation, data, encoders, RL, tasks, results, a run, sweeps, the
-performance suite, the command line. A layer may import any layer below it and itself.
+Layers, lowest first: the run core, simulation, data, encoders, RL, tasks, results, a run, diagnostics, sweeps,
+the performance suite, the command line. A layer may import any layer below it and itself.
 """
 
 import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "mftcn_bench"
-LAYERS = ["core", "sim", "data", "encoders", "rl", "tasks", "results", "run", "orchestration", "perf", "cli"]
+LAYERS = ["core", "sim", "data", "encoders", "rl", "tasks", "results", "run", "diagnose", "orchestration", "perf",
+          "cli"]
 
 
 def _layer(module: str) -> int | None:

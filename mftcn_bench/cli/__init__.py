@@ -1,8 +1,6 @@
-"""The `mftcn-bench` command line: run, list, data, check, sweep, report, leaderboard, results, plot, expert,
-runs, bench.
+"""The `mftcn-bench` command line: run, list, data, check, sweep, report, leaderboard, results, plot, diagnose, bench.
 
-The results commands (sweep to plot) live in `cli_results`; expert and runs in `artifact_commands`; `bench`
-lives in `bench`.
+The results commands (sweep to plot) live in `cli_results`; `diagnose` in `diagnose_commands`; `bench` lives in `bench`.
 
 Bad input ends with one line on stderr naming what was wrong and what is allowed, and exit code 2.
 """
@@ -124,6 +122,10 @@ def build_parser() -> argparse.ArgumentParser:
     from mftcn_bench.cli.results_commands import add_commands
 
     add_commands(commands, _common, _Parser, add_device_options)  # sweep, report, leaderboard, results, plot
+
+    from mftcn_bench.cli.diagnose_commands import add_diagnose_parser
+
+    add_diagnose_parser(commands)  # diagnose coverage|probe|policy
 
     from mftcn_bench.cli.artifact_commands import add_commands as add_artifact_commands
 

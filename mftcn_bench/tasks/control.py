@@ -42,7 +42,7 @@ from mftcn_bench.rl.expert import ensure_expert, expert_identity
 from mftcn_bench.rl.observation import PixelClip, Readout, observed_env
 from mftcn_bench.rl.observers import make_observer
 from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
-from mftcn_bench.rl.suite_env import SuiteConfig
+from mftcn_bench.rl.suite_env import EnvFactory, SuiteConfig
 from mftcn_bench.sim.rendering import RenderSettings
 from mftcn_bench.sim.suite_limits import check_dataset_fits, check_episode_fits
 from mftcn_bench.tasks.base import TaskResult
@@ -109,7 +109,9 @@ class PPOTask:
     def collector(self) -> Collector:
         return collect_episode
 
-    def _env_factory(self, encoder: Encoder, readout: Readout | None = None):
+    def env_factory(self, encoder: Encoder, readout: Readout | None = None) -> tuple[EnvFactory, nn.Module | None]:
+        """The environments this task trains and tests `encoder`'s policy on (the encoder's observation in
+        them; a trunk on raw clips for an encoder trained with the policy), and that trunk or None."""
         info = encoder.info
         joint = trains_with_policy(encoder)
 
@@ -127,7 +129,7 @@ class PPOTask:
         """PPO on the embedding (mapped by `readout` when given), then the test episodes."""
         from tqdm import tqdm
 
-        make_env, trunk = self._env_factory(encoder, readout)
+        make_env, trunk = self.env_factory(encoder, readout)
         bar = tqdm(desc=f"ppo {self.config['name']}", unit="batch", disable=None if self._bars else True, leave=False)
 
         def progress(batch: int, total: int, stats: dict[str, float]) -> None:

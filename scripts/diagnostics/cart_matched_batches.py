@@ -15,7 +15,7 @@ train frames, MSE on the test split) every `--probe-every` steps. Batches are ei
 Used to tell "the objective gains nothing from the pole" apart from "the objective would gain from the pole
 but does not find it from a random start" (see the README's cartpole-probe results).
 
-    python docs/diagnostics/cart_matched_batches.py $MFTCN_BENCH_HOME/datasets/cartpole-random-<id> \
+    python scripts/diagnostics/cart_matched_batches.py $MFTCN_BENCH_HOME/datasets/cartpole-random-<id> \
         [--batches cart-matched|random] [--steps 1500]
 """
 

@@ -6,7 +6,7 @@ one camera of a collected cartpole dataset, and prints the test MSE as it goes. 
 cannot see the pole" apart from "the time-contrastive objective does not make it encode the pole" (see the
 README's cartpole-probe results).
 
-    python docs/diagnostics/supervised_pole.py $MFTCN_BENCH_HOME/datasets/cartpole-random-<id> [--view 0]
+    python scripts/diagnostics/supervised_pole.py $MFTCN_BENCH_HOME/datasets/cartpole-random-<id> [--view 0]
 """
 
 from __future__ import annotations
