@@ -8,14 +8,14 @@ tasks, then embeds clips. Frames are uint8 RGB; a clip is the frames t-(n-1)s, .
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from mftcn_bench.core.errors import BenchError
+from mftcn_bench.core.errors import BenchError, SpecError
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.privileged import Withheld, visible
@@ -58,6 +58,17 @@ class FitBudget:
 
     steps: int
     max_seconds: float | None = None
+
+
+def fit_budget(encoder: str, train: Mapping[str, Any]) -> FitBudget:
+    """The budget of a fit from the encoder's `[train]` table. `steps` is required: the tasks' presets set
+    `encoder.train.steps` only where the spec has it, so a spec without it would fit for no steps at all."""
+    steps = train.get("steps")
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
+        raise SpecError(f"encoder {encoder!r} needs a fit and its spec's [train] table has no integer steps >= 1 "
+                        f"(got {steps!r}); add `steps = N` under [train] (the tasks' presets then set it per task)")
+    seconds = train.get("max_seconds")
+    return FitBudget(steps=steps, max_seconds=float(seconds) if seconds else None)
 
 
 # A fit's learning curve in its workdir: {"step": [...], "<measure>": [...], ...}.

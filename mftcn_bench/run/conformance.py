@@ -30,11 +30,11 @@ from mftcn_bench.encoders.base import (
     Encoder,
     EncoderInfo,
     EpisodeEmbedder,
-    FitBudget,
     StreamingEncoder,
     check_embeddings,
     embed_clips_of_episode,
     embed_episode,
+    fit_budget,
     uses_pixels,
 )
 from mftcn_bench.encoders.privileged import dataset_for, declared_inputs, is_reference
@@ -100,8 +100,8 @@ class EncoderCheck:
         if not encoder.needs_fit:
             return {}
         calls: list[tuple] = []
-        steps = int(self.prepared.config["encoder"].get("train", {}).get("steps", 1))
-        stats = encoder.fit(dataset_for(encoder, self.dataset), FitBudget(steps=steps), lambda *a: calls.append(a),
+        budget = fit_budget(encoder.info.name, self.prepared.config["encoder"].get("train", {}))
+        stats = encoder.fit(dataset_for(encoder, self.dataset), budget, lambda *a: calls.append(a),
                             self.workdir / folder)
         if not isinstance(stats, dict) or not all(isinstance(v, int | float) for v in stats.values()):
             raise _Failed(f"fit returned {type(stats).__name__} {stats!r:.80}; expected a dict of floats")

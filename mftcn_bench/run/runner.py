@@ -33,7 +33,7 @@ from mftcn_bench.core.home import BenchHome
 from mftcn_bench.core.provenance import canonical_json, content_hash, versions, warn_if_dirty
 from mftcn_bench.core.specs import EncoderSpec, encoder_spec_from_config, resolve_config
 from mftcn_bench.data.dataset import MultiViewDataset, check_dataset_config, dataset_id, ensure_dataset
-from mftcn_bench.encoders.base import FIT_CURVE, Encoder, FeatureCacheUser, FitBudget, MultiViewTrainer
+from mftcn_bench.encoders.base import FIT_CURVE, Encoder, FeatureCacheUser, MultiViewTrainer, fit_budget
 from mftcn_bench.encoders.bases import FrozenBase
 from mftcn_bench.encoders.feature_cache import ensure_feature_cache
 from mftcn_bench.encoders.privileged import dataset_for, declared_inputs
@@ -140,6 +140,8 @@ def prepare(request: RunRequest) -> PreparedRun:
     if untrained is not None and isinstance(task, ChecksEncoder):
         task.check_encoder(untrained)
     needs_fit = untrained is None or bool(untrained.needs_fit)
+    if untrained is not None and untrained.needs_fit:
+        fit_budget(spec.name, spec.train)  # a fit without a budget is refused before any work
     base = None if untrained is None else _base_identity(untrained)
     return PreparedRun(request, preset, config, encoder_entry, task, identity.run_code(encoder_class, task),
                        needs_fit, placement, base, reads_data=needs_fit or not isinstance(task, OnlineTask),
@@ -300,8 +302,7 @@ def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset,
     for stale in workdir.glob(".*.tmp-*"):  # a checkpoint write cut off by a kill (we hold the lock): never read
         stale.unlink()
     before_fit()
-    train = dict(spec.train)
-    budget = FitBudget(steps=int(train.get("steps", 0)), max_seconds=train.get("max_seconds") or None)
+    budget = fit_budget(spec.name, spec.train)
     bar, report = _progress_bar(spec.name, show_progress)
     try:
         fit_stats = encoder.fit(dataset_for(encoder, dataset), budget, report, workdir)
