@@ -8,29 +8,29 @@ import numpy as np
 import pytest
 
 from mftcn_bench.cli import main
-from mftcn_bench.perf import bench, bench_probe
+from mftcn_bench.perf import bench_probe, collection, streaming, timing
 
 
 def row(ratio, target, value=1.0):
-    return bench.BenchRow("figure", value, "frames/s", "reference", 2.0, ratio, target)
+    return timing.BenchRow("figure", value, "frames/s", "reference", 2.0, ratio, target)
 
 
 def test_targets_decide_met_on_the_ratio_or_the_value():
-    assert row(10.0, bench.Target(">=", 10)).met is True
-    assert row(9.99, bench.Target(">=", 10)).met is False
-    assert row(1.5, bench.Target("<=", 1.5)).met is True
-    assert row(1.51, bench.Target("<=", 1.5)).met is False
-    assert row(None, bench.Target("<=", 4, on="value", unit=" GiB"), value=3.9).met is True
-    assert row(None, bench.Target("<=", 4, on="value", unit=" GiB"), value=4.1).met is False
-    assert row(1.0, bench.Target("report")).met is None
-    assert row(math.nan, bench.Target(">=", 2)).met is None
-    assert str(bench.Target(">=", 0.5)) == ">= 0.5x" and str(bench.Target("report")) == "report"
+    assert row(10.0, timing.Target(">=", 10)).met is True
+    assert row(9.99, timing.Target(">=", 10)).met is False
+    assert row(1.5, timing.Target("<=", 1.5)).met is True
+    assert row(1.51, timing.Target("<=", 1.5)).met is False
+    assert row(None, timing.Target("<=", 4, on="value", unit=" GiB"), value=3.9).met is True
+    assert row(None, timing.Target("<=", 4, on="value", unit=" GiB"), value=4.1).met is False
+    assert row(1.0, timing.Target("report")).met is None
+    assert row(math.nan, timing.Target(">=", 2)).met is None
+    assert str(timing.Target(">=", 0.5)) == ">= 0.5x" and str(timing.Target("report")) == "report"
 
 
 def test_table_has_one_line_per_row_with_every_column():
-    rows = [row(12.0, bench.Target(">=", 10)), row(0.06, bench.Target(">=", 0.5)),
-            bench.BenchRow("probe", 1.4, "GiB", "-", None, None, bench.Target("<=", 4, on="value", unit=" GiB"))]
-    lines = bench.format_table(rows).splitlines()
+    rows = [row(12.0, timing.Target(">=", 10)), row(0.06, timing.Target(">=", 0.5)),
+            timing.BenchRow("probe", 1.4, "GiB", "-", None, None, timing.Target("<=", 4, on="value", unit=" GiB"))]
+    lines = timing.format_table(rows).splitlines()
     assert [c.strip() for c in lines[0].strip("|").split("|")] == ["figure", "value", "reference", "ratio",
                                                                     "target", "met"]
     assert len(lines) == 2 + len(rows)
@@ -48,7 +48,7 @@ def test_alternate_reverses_the_order_every_other_round_and_reports_work_per_sec
             return work, seconds
         return run
 
-    rates = bench.alternate({"a": block("a", 10, 2.0), "b": block("b", 3, 1.0)}, rounds=3)
+    rates = timing.alternate({"a": block("a", 10, 2.0), "b": block("b", 3, 1.0)}, rounds=3)
     assert calls == ["a", "b", "a", "b", "b", "a", "a", "b"]  # warm-up, then a b / b a / a b
     assert rates == {"a": 5.0, "b": 3.0}
 
@@ -157,9 +157,9 @@ def test_streaming_row_turns_steps_per_second_into_the_cost_ratio(monkeypatch, r
         def push(self, frame, running):
             raise AssertionError("the rates are given: nothing is pushed")
 
-    monkeypatch.setattr(bench, "_streamer", lambda frames, stride: (Stream(), None))
-    monkeypatch.setattr(bench, "alternate", lambda blocks, rounds: dict(rates))
-    got = bench.bench_streaming(bench.QUICK)
+    monkeypatch.setattr(streaming, "_streamer", lambda frames, stride: (Stream(), None))
+    monkeypatch.setattr(streaming, "alternate", lambda blocks, rounds: dict(rates))
+    got = streaming.bench_streaming(timing.QUICK)
     assert (got.unit, got.reference) == ("ms", "lookback 1")
     assert got.value == pytest.approx(cost) and got.reference_value == pytest.approx(reference_cost)
     assert got.ratio == pytest.approx(ratio) and got.met is met
@@ -208,10 +208,10 @@ def test_the_rendering_only_reference_renders_what_mftcn5_sees_and_embeds_nothin
 
     from mftcn_bench.rl.suite_env import suite_env_of
 
-    sizes = dataclasses.replace(bench.QUICK, ppo_envs=2, ppo_pixel_steps=2)
-    task = bench.STREAMS[stream]
-    subject, repeat = bench._suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, task)
-    reference, same_repeat = bench._suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, task, render_only=True)
+    sizes = dataclasses.replace(timing.QUICK, ppo_envs=2, ppo_pixel_steps=2)
+    task = collection.STREAMS[stream]
+    subject, repeat = collection.suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, task)
+    reference, same_repeat = collection.suite_collector("mftcn5", sizes, sizes.ppo_pixel_steps, task, render_only=True)
     try:
         assert repeat == same_repeat == 8
         assert suite_env_of(reference.env).stream_frames == suite_env_of(subject.env).stream_frames == rendered

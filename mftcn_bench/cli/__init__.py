@@ -1,6 +1,8 @@
-"""The `mftcn-bench` command line: run, list, data, check, sweep, report, leaderboard, results, plot, diagnose, bench.
+"""The `mftcn-bench` command line: run, list, data, check, sweep, report, leaderboard, results, plot, diagnose,
+expert, runs, bench.
 
-The results commands (sweep to plot) live in `cli_results`; `diagnose` in `diagnose_commands`; `bench` lives in `bench`.
+The results commands (sweep to plot) live in `results_commands`, `diagnose` in `diagnose_commands`, `expert`
+and `runs` in `artifact_commands`, `bench` in `bench_command`; what they share in `options`.
 
 Bad input ends with one line on stderr naming what was wrong and what is allowed, and exit code 2.
 """
@@ -13,13 +15,10 @@ import sys
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn
 
-from tabulate import tabulate
-
+from mftcn_bench.cli.options import Parser, add_device_options, common, print_table, seed
 from mftcn_bench.core.device import CHOICES, requested_device
-from mftcn_bench.core.device import ENV_VAR as DEVICE_ENV_VAR
-from mftcn_bench.core.errors import BenchError, SpecError
+from mftcn_bench.core.errors import BenchError
 from mftcn_bench.core.home import ENV_VAR, BenchHome
 from mftcn_bench.core.specs import parse_override
 
@@ -27,75 +26,31 @@ DEFAULT_ENCODER = "mftcn4"
 DEFAULT_TASK = "cartpole-probe"
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        raise SpecError(f"{self.prog}: {message}")
-
-
-def _fmt(value: Any) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float):
-        return f"{value:.4f}"
-    return str(value)
-
-
-def _print_table(rows: list[dict[str, Any]]) -> None:
-    if not rows:
-        return
-    body = [[_fmt(row.get(column)) for column in rows[0]] for row in rows]
-    print(tabulate(body, headers=list(rows[0]), tablefmt="github", disable_numparse=True))
-
-
-def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise SpecError(f"--seed must be a non-negative integer, got {text!r}") from None
-    if value < 0:
-        raise SpecError(f"--seed must be a non-negative integer, got {value}")
-    return value
-
-
-def add_device_options(parser: argparse.ArgumentParser) -> None:
-    """--device and --deterministic (run, sweep, bench)."""
-    parser.add_argument("--device", help=f"where networks compute: {CHOICES} (default ${DEVICE_ENV_VAR} or "
-                                         "auto: CUDA when torch sees a GPU)")
-    parser.add_argument("--deterministic", action="store_true",
-                        help="torch's deterministic algorithms (slower on a GPU; see README, determinism)")
-
-
-def _common(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--home", help=f"folder for datasets, encoders and results (default ${ENV_VAR} "
-                                       "or ~/.mftcn-bench)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="mftcn-bench", description=__doc__.splitlines()[0])
-    commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    parser = Parser(prog="mftcn-bench", description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
 
     run = commands.add_parser("run", help="run one encoder on one task and print its result")
     run.add_argument("--encoder", default=DEFAULT_ENCODER, help=f"encoder name (default {DEFAULT_ENCODER})")
     run.add_argument("--task", default=DEFAULT_TASK, help=f"task name (default {DEFAULT_TASK})")
     run.add_argument("--preset", help="task preset: smoke, quick or paper (default: the task's own)")
-    run.add_argument("--seed", type=_seed, default=0)
+    run.add_argument("--seed", type=seed, default=0)
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a spec value, e.g. encoder.embedding_dim=8 (repeatable)")
     run.add_argument("--force", action="store_true", help="recompute even if a stored result exists")
     add_device_options(run)
-    _common(run)
+    common(run)
 
     listing = commands.add_parser("list", help="list registered encoders or tasks")
     listing.add_argument("kind", choices=["encoders", "tasks"])
 
     data = commands.add_parser("data", help="datasets")
-    data_commands = data.add_subparsers(dest="data_command", required=True, parser_class=_Parser)
+    data_commands = data.add_subparsers(dest="data_command", required=True, parser_class=Parser)
     collect = data_commands.add_parser("collect", help="collect the dataset a task needs")
     collect.add_argument("task", help="task whose dataset to collect, e.g. cartpole-probe")
     collect.add_argument("--preset")
     collect.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
-    _common(collect)
+    common(collect)
     show = data_commands.add_parser("show", help="contact sheet (PNG) and video (mp4) of one episode, with labels")
     show.add_argument("task", help="task whose dataset to show, e.g. pouring")
     show.add_argument("--preset")
@@ -104,10 +59,10 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("--episode", type=int, default=0, help="position of the episode in its split (default 0)")
     show.add_argument("--columns", type=int, default=8, help="frames per view in the contact sheet")
     show.add_argument("--out", default=".", help="folder for the PNG and the mp4 (default: here)")
-    _common(show)
+    common(show)
 
     check = commands.add_parser("check", help="check that a registered encoder keeps the encoder contract")
-    check_commands = check.add_subparsers(dest="check_command", required=True, parser_class=_Parser)
+    check_commands = check.add_subparsers(dest="check_command", required=True, parser_class=Parser)
     check_encoder = check_commands.add_parser(
         "encoder", help="run the contract (metadata, embeddings, embed_episode, streaming, determinism, "
                         "save/load) against one encoder on a small synthetic dataset; exit 2 on a failure")
@@ -121,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from mftcn_bench.cli.results_commands import add_commands
 
-    add_commands(commands, _common, _Parser, add_device_options)  # sweep, report, leaderboard, results, plot
+    add_commands(commands, common, Parser, add_device_options)  # sweep, report, leaderboard, results, plot
 
     from mftcn_bench.cli.diagnose_commands import add_diagnose_parser
 
@@ -129,9 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     from mftcn_bench.cli.artifact_commands import add_commands as add_artifact_commands
 
-    add_artifact_commands(commands, _common, _Parser)  # expert train, runs export|import
+    add_artifact_commands(commands, common, Parser)  # expert train, runs export|import
 
-    from mftcn_bench.perf.bench import add_command as add_bench
+    from mftcn_bench.cli.bench_command import add_command as add_bench
 
     add_bench(commands)  # bench
     return parser
@@ -148,7 +103,7 @@ def cmd_run(args: argparse.Namespace) -> None:
     how = "reused stored result" if outcome.reused else f"finished in {record.timings['total_s']:.1f} s"
     print(f"{record.encoder} on {record.task} (preset {record.preset}, seed {record.seed}): {how}; "
           f"run {record.run_id}")
-    _print_table(outcome.table)
+    print_table(outcome.table)
     for note in outcome.notes:
         print(note)
 
@@ -172,7 +127,7 @@ def cmd_check(args: argparse.Namespace) -> None:
 def cmd_list(args: argparse.Namespace) -> None:
     from mftcn_bench.core import registry
 
-    _print_table(registry.describe(args.kind))
+    print_table(registry.describe(args.kind))
 
 
 def cmd_data(args: argparse.Namespace) -> None:

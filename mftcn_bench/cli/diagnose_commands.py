@@ -10,7 +10,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from mftcn_bench.cli import _common, _print_table, _seed
+from mftcn_bench.cli.options import common, print_table, seed
 from mftcn_bench.core.home import BenchHome
 
 if TYPE_CHECKING:  # the diagnostics import numpy, torch and MuJoCo: only the command that runs loads them
@@ -34,7 +34,7 @@ def _run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--encoder", required=True, help="encoder name, as given to `mftcn-bench run`")
     parser.add_argument("--task", required=True, help="task name, as given to `mftcn-bench run`")
     parser.add_argument("--preset", help="task preset (default: the task's own)")
-    parser.add_argument("--seed", type=_seed, default=0)
+    parser.add_argument("--seed", type=seed, default=0)
 
 
 def add_diagnose_parser(commands: argparse._SubParsersAction) -> None:
@@ -59,14 +59,14 @@ def add_diagnose_parser(commands: argparse._SubParsersAction) -> None:
     probe.add_argument("--random-episodes", type=_count, default=0, metavar="N",
                        help="also score N episodes of uniformly random actions (tasks whose data are an expert's "
                             "demonstrations: cheetah)")
-    _common(probe)
+    common(probe)
     probe.set_defaults(handler=cmd_probe)
 
     policy = actions.add_parser("policy", help="a finished cartpole run's policy replayed on its test episodes: "
                                                "cart range, camera coverage and the state probe on its states")
     _run_options(policy)
     policy.add_argument("--episodes", type=_count, default=8, help="test episodes to replay (default 8)")
-    _common(policy)
+    common(policy)
     policy.set_defaults(handler=cmd_policy)
 
 
@@ -78,7 +78,7 @@ def cmd_coverage(args: argparse.Namespace) -> None:
     cart = found.cart
     print(f"{found.dataset_id}: {found.frames} frames at {found.width}x{found.height}; |x| median "
           f"{cart.median:.3f}, 90th percentile {cart.p90:.3f}, max {cart.max:.3f}")
-    _print_table([_coverage_row(c) for c in found.cameras])
+    print_table([_coverage_row(c) for c in found.cameras])
 
 
 def _coverage_row(fractions: CoverageFractions) -> dict[str, Any]:
@@ -107,7 +107,7 @@ def cmd_probe(args: argparse.Namespace) -> None:
         columns.append((f"{camera.camera}: test", camera.test))
         if camera.random_actions is not None:
             columns.append((f"{camera.camera}: random actions", camera.random_actions))
-    _print_table(_score_rows(found.dimensions, columns))
+    print_table(_score_rows(found.dimensions, columns))
 
 
 def _score_rows(dimensions: tuple[str, ...], columns: list[tuple[str, ProbeScore]]) -> list[dict[str, Any]]:
@@ -128,10 +128,10 @@ def cmd_policy(args: argparse.Namespace) -> None:
     cart = found.cart
     print(f"|x| median {cart.median:.3f}, 90th percentile {cart.p90:.3f}, max {cart.max:.3f}")
     print(f"{found.camera.camera} at {found.width}x{found.height}:")
-    _print_table([_coverage_row(found.camera)])
+    print_table([_coverage_row(found.camera)])
     if found.probe is None or found.probe_test is None:
         print(found.probe_note)
         return
     print(f"state probe of the {found.camera.camera!r} camera's embedding, fitted on the data set's train split:")
-    _print_table(_score_rows(found.dimensions, [(f"test split ({found.probe_test.frames} frames)", found.probe_test),
+    print_table(_score_rows(found.dimensions, [(f"test split ({found.probe_test.frames} frames)", found.probe_test),
                                                 (f"policy's states ({found.probe.frames} frames)", found.probe)]))

@@ -1,6 +1,6 @@
 """`mftcn-bench bench --device D`: the same work on device D against the CPU, in one process.
 
-Each figure alternates blocks on the device and on the CPU (`bench.alternate`), so the ratio is the
+Each figure alternates blocks on the device and on the CPU (`timing.alternate`), so the ratio is the
 device's speed-up for that step of the pipeline: the frozen base's forward pass (what builds a feature
 cache and what every rollout frame costs), mfTCN5's head training on the cache, and PPO collection on true
 state and on streaming mfTCN5 embeddings (environments and rendering on the CPU either way). With
@@ -15,19 +15,9 @@ from pathlib import Path
 from typing import Any
 
 from mftcn_bench.core.device import Placement
-from mftcn_bench.perf.bench import (
-    BenchRow,
-    Sizes,
-    Target,
-    _collect,
-    _mftcn5,
-    _one_thread,
-    _steps_block,
-    _suite_collector,
-    _train_config,
-    alternate,
-    cartpole_dataset,
-)
+from mftcn_bench.perf.collection import collect, suite_collector
+from mftcn_bench.perf.fixtures import cartpole_dataset, mftcn5, train_config
+from mftcn_bench.perf.timing import BenchRow, Sizes, Target, alternate, one_thread, steps_block
 
 
 def _synchronised(fn: Callable[[], Any], device) -> Callable[[], Any]:
@@ -51,13 +41,13 @@ def bench_device(sizes: Sizes, workdir: Path, placement: Placement) -> list[Benc
     from mftcn_bench.encoders.feature_cache import base_features, ensure_feature_cache
     from mftcn_bench.encoders.training import train_multiview
 
-    _one_thread()
+    one_thread()
     device, cpu = placement.torch_device, torch.device("cpu")
     name = placement.gpu or placement.device
     dataset = cartpole_dataset(workdir, sizes)
     views = [dataset.load(i).frames for i in dataset.episodes("train")]
     frames = sum(v.shape[0] * v.shape[1] for v in views)
-    encoders = {"device": _mftcn5(dataset), "cpu": _mftcn5(dataset)}
+    encoders = {"device": mftcn5(dataset), "cpu": mftcn5(dataset)}
     encoders["device"].to_device(device)
 
     def forward(where) -> Callable[[], tuple[float, float]]:
@@ -86,7 +76,7 @@ def bench_device(sizes: Sizes, workdir: Path, placement: Placement) -> list[Benc
     def trainer(key: str, where) -> Callable[[Any], None]:
         encoder = encoders[key]
         encoder.use_feature_cache(cache)
-        config = _train_config(encoder, dataset)
+        config = train_config(encoder, dataset)
 
         def train(progress) -> None:
             folder = workdir / f"head-{key}"
@@ -96,16 +86,16 @@ def bench_device(sizes: Sizes, workdir: Path, placement: Placement) -> list[Benc
                             features=encoder.training_features(), device=where)
         return train
 
-    rates = alternate({"device": _steps_block(trainer("device", device), steps, 1),
-                       "cpu": _steps_block(trainer("cpu", cpu), steps, 1)}, sizes.rounds, warmup=False)
+    rates = alternate({"device": steps_block(trainer("device", device), steps, 1),
+                       "cpu": steps_block(trainer("cpu", cpu), steps, 1)}, sizes.rounds, warmup=False)
     rows.append(BenchRow(f"head training on the feature cache, mfTCN5 on {name}", rates["device"], "steps/s",
                          "the same on the CPU", rates["cpu"], rates["device"] / rates["cpu"], Target("report"),
                          "64 clips a step; cached features copied to the device each step"))
 
     for encoder, label, agent_steps in (("true-state", "true state", sizes.ppo_state_steps),
                                         ("mftcn5", "mfTCN5 embeddings (96x48)", sizes.ppo_pixel_steps)):
-        rates = _collect({"device": _suite_collector(encoder, sizes, agent_steps, device=device),
-                          "cpu": _suite_collector(encoder, sizes, agent_steps, device=cpu)}, sizes)
+        rates = collect({"device": suite_collector(encoder, sizes, agent_steps, device=device),
+                         "cpu": suite_collector(encoder, sizes, agent_steps, device=cpu)}, sizes)
         rows.append(BenchRow(f"PPO collection on {label}, policy on {name} ({sizes.ppo_envs} envs)",
                              rates["device"], "frames/s", "the same on the CPU", rates["cpu"],
                              rates["device"] / rates["cpu"], Target("report"),
