@@ -47,6 +47,14 @@ class ForgetsOnLoad(TrueStateEncoder):
 
     def embed(self, clips):
         return super().embed(clips) + np.float32(self.offset)
+
+
+class ProbeShapedOnly(TrueStateEncoder):
+    """Written against the probe's 48x96 frames: it passes every check made at that shape."""
+
+    def embed(self, clips):
+        assert clips.frames.shape[2:4] == (48, 96), "expects 48x96 frames"
+        return super().embed(clips)
 '''
 
 
@@ -62,7 +70,7 @@ def test_builtins_keep_the_contract(capsys, name):
     assert code == 0, lines
     checks = {line.split()[1]: line.split()[0] for line in lines if line[:4] in ("ok  ", "FAIL", "skip")}
     assert set(checks) == {"spec", "construct", "privileged", "metadata", "fit", "embed", "embed_episode", "streaming",
-                           "determinism", "save-load", "device"} and set(checks.values()) == {"ok"}
+                           "determinism", "save-load", "device", "shapes"} and set(checks.values()) == {"ok"}
 
 
 @pytest.mark.slow
@@ -72,10 +80,11 @@ def test_a_time_contrastive_builtin_keeps_the_contract(capsys):
 
 
 @pytest.mark.parametrize(("name", "failing"), [("off-by-one", "embed_episode"), ("wrong-dtype", "embed"),
-                                               ("forgets", "save-load")])
+                                               ("forgets", "save-load"), ("probe-shaped", "shapes")])
 def test_a_broken_plugin_fails_the_check_that_finds_it(capsys, tmp_path, monkeypatch, name, failing):
     install(monkeypatch, tmp_path, "brokenplug", "0.1", {"enc": BROKEN},
-            {"off-by-one": "enc:EpisodeOffByOne", "wrong-dtype": "enc:WrongDtype", "forgets": "enc:ForgetsOnLoad"})
+            {"off-by-one": "enc:EpisodeOffByOne", "wrong-dtype": "enc:WrongDtype", "forgets": "enc:ForgetsOnLoad",
+             "probe-shaped": "enc:ProbeShapedOnly"})
     code, lines = _check(capsys, name)
     assert code == 2
     failed = [line for line in lines if line.startswith("FAIL")]

@@ -15,18 +15,21 @@ from __future__ import annotations
 
 import tempfile
 import traceback
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mftcn_bench.core import registry
 from mftcn_bench.core.device import DevicePlaced, full_float32, resolve_device
+from mftcn_bench.core.errors import BenchError
 from mftcn_bench.core.home import BenchHome
 from mftcn_bench.data.dataset import MultiViewDataset, ensure_dataset
 from mftcn_bench.data.synthetic import synthetic_collector
 from mftcn_bench.encoders.base import (
+    ClipBatch,
     Encoder,
     EncoderInfo,
     EpisodeEmbedder,
@@ -37,7 +40,7 @@ from mftcn_bench.encoders.base import (
     fit_budget,
     uses_pixels,
 )
-from mftcn_bench.encoders.privileged import dataset_for, declared_inputs, is_reference
+from mftcn_bench.encoders.privileged import dataset_for, declared_inputs, is_reference, visible
 from mftcn_bench.run.runner import PreparedRun, RunRequest, attach_feature_cache, construct_encoder, prepare
 
 # Two paths to the same embedding may differ by TOLERANCE times the embeddings' largest magnitude (at least
@@ -238,12 +241,42 @@ class EncoderCheck:
                      f"to_device({self.placement.device}) vs the CPU",
                      DEVICE_TOLERANCE if self.placement.is_cuda else TOLERANCE)
 
+    def shapes(self) -> str:
+        """The untrained encoder, built as each registered control task builds it (that task's encoder config,
+        frame size and state size), embeds random clips to the right shape: a plugin that hard-codes the
+        probe's 48x96 frames or 4-d state fails here, not hours into a cheetah run."""
+        seen: dict[tuple[int, int, int], str] = {}
+        for task in sorted(registry.entries("tasks")):
+            try:
+                prepared = prepare(RunRequest(self.name, task, None, 0, self.overrides, device="cpu"))
+            except BenchError:
+                continue  # a task that does not serve this encoder (imitation and a policy-trained encoder)
+            data = prepared.task.dataset_config
+            if not isinstance(data, Mapping) or data.get("domain") not in SUITE_DOMAINS:
+                continue
+            shape = (int(data["height"]), int(data["width"]), suite_state_size(data["domain"]))
+            if shape in seen:
+                continue
+            seen[shape] = task
+            encoder = construct_encoder(prepared.encoder_entry, prepared.config["encoder"], 0, shape[:2])
+            info = encoder.info
+            rng = np.random.default_rng(0)
+            frames = rng.integers(0, 256, (2, info.frames, shape[0], shape[1], 3), dtype=np.uint8)
+            state = visible(encoder, "state", rng.standard_normal((2, info.frames, shape[2])))
+            try:
+                check_embeddings(encoder, encoder.embed(ClipBatch(frames, state)), 2)
+            except Exception as exc:  # noqa: BLE001 - whatever a plugin raises is this check's answer
+                raise _Failed(f"{task} ({shape[1]}x{shape[0]} frames, {shape[2]}-d state): "
+                              f"{type(exc).__name__}: {exc}") from None
+        return ", ".join(f"{w}x{h} frames, {n}-d state ({task})" for (h, w, n), task in seen.items())
+
     def run(self) -> Iterator[CheckLine]:
         checks: list[tuple[str, Callable[[], str]]] = [
             ("spec", self.spec), ("construct", self.construct), ("privileged", self.privileged),
             ("metadata", self.metadata), ("fit", self.fit),
             ("embed", self.embed), ("embed_episode", self.embed_episode), ("streaming", self.streaming),
-            ("determinism", self.determinism), ("save-load", self.save_load), ("device", self.device)]
+            ("determinism", self.determinism), ("save-load", self.save_load), ("device", self.device),
+            ("shapes", self.shapes)]
         blocked = None
         for name, check in checks:
             if blocked is not None:
@@ -259,6 +292,21 @@ class EncoderCheck:
                                               f"{where.lineno})")
                 if name in ("spec", "construct", "privileged", "fit"):
                     blocked = name
+
+
+SUITE_DOMAINS = ("cartpole", "cheetah")  # the control suite's domains that registered tasks simulate
+
+
+def suite_state_size(domain: str) -> int:
+    """The size of the true state a suite domain records with each frame (`physics_state`)."""
+    from mftcn_bench.rl.suite_env import physics_state
+    from mftcn_bench.sim.rendering import ensure_gl
+
+    ensure_gl()  # before dm_control is imported: it picks its GL back end then
+    from dm_control import suite
+
+    task = {"cartpole": "swingup", "cheetah": "run"}[domain]
+    return int(physics_state(suite.load(domain, task).physics, domain).shape[0])
 
 
 def check_encoder(name: str, overrides: Sequence[tuple[str, Any]] = (),
