@@ -50,10 +50,12 @@ def test_the_records_import_and_rank(tmp_path):
         assert f"| {record.encoder} " in boards[f"{record.task}.md"], record.run_id
 
 
-def test_the_results_document_is_generated_from_these_records(capsys):
-    """docs/RESULTS.md's tables are exactly what `mftcn-bench results doc` renders from results/."""
+@pytest.mark.parametrize("name", ["RESULTS.md", "FINDINGS.md"])
+def test_the_results_documents_are_generated_from_these_records(capsys, name):
+    """docs/RESULTS.md's and docs/FINDINGS.md's tables are exactly what `mftcn-bench results doc` renders from
+    results/."""
     from mftcn_bench.cli import main
 
-    document = RESULTS.parent / "docs" / "RESULTS.md"
+    document = RESULTS.parent / "docs" / name
     code = main(["results", "doc", str(document), "--records", str(RESULTS), "--check"])
     assert code == 0, capsys.readouterr().err

@@ -7,7 +7,7 @@ image's edge, its centre outside the image, the pole's tip outside it. Geometry 
 so a data set of 180,000 frames takes seconds (tests/test_diagnose.py checks it against MuJoCo's segmentation
 render). `dataset_coverage` summarises a collected cartpole data set: the distribution of |x| and, per camera,
 how often each of the three happens. It answered whether the fixed camera's square 160x160 image (half of
-96x48's horizontal field) is why the swing-up rows do not gain from the resolution (docs/RESULTS.md).
+96x48's horizontal field) is why the swing-up rows do not gain from the resolution (docs/FINDINGS.md).
 """
 
 from __future__ import annotations
