@@ -35,6 +35,13 @@ def test_only_runs_of_the_current_specs_are_tabled():
     other_diagnostics = copy.deepcopy(config)
     other_diagnostics["encoder"]["train"]["heldout_batches"] += 1
     assert matches_current_specs(record(other_diagnostics))
+    # keys added with the value that reproduces the earlier network: absent counts as that value
+    added = copy.deepcopy(config)
+    del added["encoder"]["model"]["temporal_kernel"], added["encoder"]["model"]["spatial_pool"]
+    assert matches_current_specs(record(added))
+    other_head = copy.deepcopy(config)
+    other_head["encoder"]["model"]["spatial_pool"] = "mean+softargmax"
+    assert not matches_current_specs(record(other_head))
 
 
 # --- the paper tables, filled from synthetic stored runs -----------------------------------------------

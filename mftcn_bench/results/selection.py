@@ -52,16 +52,27 @@ def exclusion(record: RunRecord, varied: Sequence[str] = VARIED) -> str | None:
     return None
 
 
-# Spec keys that only add diagnostics to a record and change no fitted weight (tests/test_mftcn.py holds
-# the fit to that): a run recorded before they existed, or with other values, still counts.
+# Encoder spec keys that only add diagnostics to a record and change no fitted weight (tests/test_mftcn.py
+# holds the fit to that): a run recorded before they existed, or with other values, still counts.
 DIAGNOSTIC_KEYS: tuple[str, ...] = ("train.heldout_every", "train.heldout_batches")
+# Encoder spec keys added later with the value that computes what the runs before them computed (the
+# paper's head; tests/test_mftcn.py): a run recorded without the key counts as having that value.
+ADDED_KEYS: dict[str, Any] = {"model.temporal_kernel": 3, "model.spatial_pool": "mean"}
 
 
 def _without_diagnostics(encoder: Any) -> Any:
+    """The encoder config as runs are compared: diagnostic keys dropped, added keys at their value."""
     if not isinstance(encoder, Mapping):
         return encoder
-    train = {k: v for k, v in encoder.get("train", {}).items() if f"train.{k}" not in DIAGNOSTIC_KEYS}
-    return {**encoder, "train": train} if "train" in encoder else dict(encoder)
+    tables = {name: dict(table) for name, table in encoder.items() if isinstance(table, Mapping)}
+    for key in DIAGNOSTIC_KEYS:
+        table, leaf = key.split(".")
+        tables.get(table, {}).pop(leaf, None)
+    for key, value in ADDED_KEYS.items():
+        table, leaf = key.split(".")
+        if table in tables:
+            tables[table].setdefault(leaf, value)
+    return {**encoder, **tables}
 
 
 def matches_current_specs(record: RunRecord) -> bool:
