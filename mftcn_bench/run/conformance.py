@@ -113,6 +113,16 @@ class EncoderCheck:
             raise _Failed(f"progress was called as {calls[-1]!r:.80}; expected (step, total, {{name: value}})")
         return stats
 
+    def _fit_at(self, encoder: Encoder, size: tuple[int, int]) -> None:
+        """Fit `encoder` on the check's synthetic data set drawn at `size` (height, width)."""
+        assert self.dataset is not None and self.prepared is not None
+        config = {**self.dataset.config, "height": size[0], "width": size[1],
+                  "name": f"conformance-{size[0]}x{size[1]}"}
+        dataset = ensure_dataset(self.home.datasets, config, synthetic_collector, show_progress=False)
+        attach_feature_cache(encoder, dataset, self.home, show_progress=False)
+        budget = fit_budget(encoder.info.name, self.prepared.config["encoder"].get("train", {}))
+        encoder.fit(dataset_for(encoder, dataset), budget, lambda *a: None, self.workdir / f"fit-{size[0]}x{size[1]}")
+
     def _episodes(self) -> list[tuple[np.ndarray, np.ndarray]]:
         assert self.dataset is not None
         view = 0
@@ -259,6 +269,8 @@ class EncoderCheck:
                 continue
             seen[shape] = task
             encoder = construct_encoder(prepared.encoder_entry, prepared.config["encoder"], 0, shape[:2])
+            if encoder.needs_fit:  # fitted first, with the check's budget, on synthetic frames of this size
+                self._fit_at(encoder, shape[:2])
             info = encoder.info
             rng = np.random.default_rng(0)
             frames = rng.integers(0, 256, (2, info.frames, shape[0], shape[1], 3), dtype=np.uint8)

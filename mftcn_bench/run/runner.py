@@ -38,7 +38,7 @@ from mftcn_bench.encoders.bases import FrozenBase
 from mftcn_bench.encoders.feature_cache import ensure_feature_cache
 from mftcn_bench.encoders.privileged import dataset_for, declared_inputs
 from mftcn_bench.results.store import ResultStore, RunRecord
-from mftcn_bench.run.portable import plan_of, write_plan
+from mftcn_bench.run.portable import PLAN, plan_of, write_plan
 from mftcn_bench.sim.rendering import follow_device
 from mftcn_bench.tasks.base import ChecksEncoder, NeedsArtifacts, OnlineTask, ShowsProgress, Task
 
@@ -383,7 +383,8 @@ def _run_once(prepared: PreparedRun, home: BenchHome, show_progress: bool, began
         else:
             result = prepared.task.evaluate(encoder, dataset, run_dir)
     except BaseException:
-        if existing is not None or not any(run_dir.iterdir()):  # nothing to resume from: leave no folder behind
+        # nothing to resume from (the plan alone is no progress): leave no folder behind
+        if existing is not None or not any(path.name != PLAN for path in run_dir.iterdir()):
             shutil.rmtree(run_dir, ignore_errors=True)
         raise
     done = time.monotonic()
