@@ -179,6 +179,7 @@ def test_pixel_critic_sees_one_environment_at_a_time_when_computing_advantages(t
     from mftcn_bench.rl.observation import PixelClip, observed_env
 
     no_grad_batches: list[int] = []
+    grad_batches: list[int] = []
 
     class Trunk(nn.Module):
         out_features = 4
@@ -189,20 +190,26 @@ def test_pixel_critic_sees_one_environment_at_a_time_when_computing_advantages(t
 
         def forward(self, clips: torch.Tensor) -> torch.Tensor:
             flat = clips.reshape(-1, 3 * ENV.height * ENV.width).float() / 255.0
-            if not torch.is_grad_enabled():
-                no_grad_batches.append(flat.shape[0])
+            (grad_batches if torch.is_grad_enabled() else no_grad_batches).append(flat.shape[0])
             return self.linear(flat).reshape(*clips.shape[:-4], 4)
 
     def make_env(num_envs: int, seed: int):
         return observed_env(ENV, num_envs, seed, None, 4, True, pixel_clip=PixelClip(1, 1))
 
     config = PPOConfig(**{**PPO.__dict__, "frames": 160, "num_envs": 3})
-    train_ppo(make_env, config, 0, tmp_path, lambda *args: None, trunk=Trunk())
+    trunk = Trunk()
+    before = trunk.linear.weight.detach().clone()
+    nets, _ = train_ppo(make_env, config, 0, tmp_path, lambda *args: None, trunk=trunk)
     agent_steps = ENV.episode_length // ENV.action_repeat
     # Collection steps the policy on all 3 environments at once (3 clips); advantages: one environment's
     # 10 steps per call, never the batch's 30 (or 60 with the next observations).
     assert max(no_grad_batches) == agent_steps
     assert no_grad_batches.count(agent_steps) == 2 * 3 * 2  # 2 batches x 3 environments x (obs, next obs)
+    # The update runs the trunk once per minibatch for both heads (30 steps in minibatches of 8: 8, 8, 8, 6;
+    # 2 epochs, 2 batches), not once per head, and the optimiser moves it.
+    assert grad_batches == [8, 8, 8, 6] * 2 * 2
+    assert not torch.equal(trunk.linear.weight, before)
+    assert {id(p) for p in nets.trainable()} >= {id(p) for p in trunk.parameters()}
 
 
 def test_the_update_sees_the_normalisation_the_batch_was_collected_with(tmp_path, monkeypatch):
@@ -212,12 +219,12 @@ def test_the_update_sees_the_normalisation_the_batch_was_collected_with(tmp_path
 
     update, ratios = ppo._update, []
 
-    def checked(batch, loss, advantage, optimizer, config):
+    def checked(batch, common, loss, advantage, optimizer, config):
         with torch.no_grad():
-            dist = loss.actor_network.get_dist(batch.clone())
+            dist = loss.actor_network.get_dist(common(batch.clone()))
             stored = batch.get("action_log_prob")
             ratios.append(float((dist.log_prob(batch.get("action")) - stored).abs().max()))
-        return update(batch, loss, advantage, optimizer, config)
+        return update(batch, common, loss, advantage, optimizer, config)
 
     monkeypatch.setattr(ppo, "_update", checked)
     _train(tmp_path)
@@ -263,7 +270,7 @@ def test_one_update_on_a_fixed_batch_against_hand_computed_steps():
 
     loss = FixedLoss()
     config = replace(PPO, epochs=2, minibatch_size=4, max_grad_norm=0.5, reward_scale=0.1)
-    stats = _update(batch, loss, advantage, torch.optim.SGD(loss.parameters(), lr=1.0), config)
+    stats = _update(batch, lambda td: td, loss, advantage, torch.optim.SGD(loss.parameters(), lr=1.0), config)
     assert len(seen_rewards) == 1 and torch.allclose(seen_rewards[0], torch.full((2, 5, 1), 0.1))
     assert torch.equal(batch.get(("next", "reward")), torch.ones(2, 5, 1)), "the caller's batch is not scaled"
     assert loss.sizes == [4, 4, 2, 4, 4, 2]  # 10 steps in minibatches of 4, twice

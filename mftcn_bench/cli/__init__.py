@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from mftcn_bench.cli.options import Parser, add_device_options, common, print_table, seed
+from mftcn_bench.core.allocator import keep_freed_memory
 from mftcn_bench.core.device import CHOICES, requested_device
 from mftcn_bench.core.errors import BenchError
 from mftcn_bench.core.home import ENV_VAR, BenchHome
@@ -177,6 +178,7 @@ def _unwritable(exc: OSError) -> bool:
 
 def main(argv: Sequence[str] | None = None) -> int:
     warnings.showwarning = _warn_one_line
+    keep_freed_memory()
     try:
         args = build_parser().parse_args(argv)
         (COMMANDS.get(args.command) or args.handler)(args)

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from mftcn_bench.core.allocator import keep_freed_memory
 from mftcn_bench.results.store import RunRecord
 
 JobKind = Literal["dataset", "encoder", "run"]
@@ -74,6 +75,7 @@ def execute(spec: JobSpec) -> JobResult:
     from threadpoolctl import threadpool_limits
 
     began = time.monotonic()
+    keep_freed_memory()  # a spawned worker starts with glibc's defaults
     torch.set_num_threads(spec.threads)
     try:
         with threadpool_limits(limits=spec.threads):

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from tensordict.nn.distributions.continuous import AddStateIndependentNormalScale
 from torch import nn
@@ -156,6 +157,15 @@ class PolicyNetworks(nn.Module):
         self.operator = ActorValueOperator(common, actor, value_head)
 
     @property
+    def common(self) -> TensorDictModule:
+        """The part both heads read: the observation normaliser, or the pixel trunk."""
+        return self.operator.module[0]
+
+    def trainable(self) -> list[nn.Parameter]:
+        """The parameters PPO's optimiser updates and clips: trunk (if any), policy head, value head."""
+        return list(self.operator.parameters())
+
+    @property
     def policy(self) -> TensorDictModule:
         return self.operator.get_policy_operator()
 
@@ -174,7 +184,10 @@ def ppo_objectives(nets: PolicyNetworks, config: PPOConfig, pixels: bool = False
     """The clipped PPO loss and the GAE estimator of `config`. GAE bootstraps from the critic where an
     episode is truncated (the time limit: `SuiteBatchEnv` marks it truncated, never terminated) and would
     not where one terminates."""
-    loss = ClipPPOLoss(nets.policy, nets.value, clip_epsilon=config.clip_epsilon, clip_value=config.clip_value,
+    # The loss gets the heads and `_update` runs the common part once per minibatch: a pixel trunk's forward
+    # and backward are done once for both heads, not once per head (what is computed is the same).
+    loss = ClipPPOLoss(nets.operator.get_policy_head(), nets.operator.get_value_head(),
+                       clip_epsilon=config.clip_epsilon, clip_value=config.clip_value,
                        entropy_coeff=config.entropy_coeff, critic_coeff=config.critic_coeff,
                        loss_critic_type="l2", normalize_advantage=True)
     # With a pixel trunk the critic sees one environment's steps at a time: all of a batch's observations
@@ -198,7 +211,7 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
     agent_steps = suite.config.agent_steps
     nets = PolicyNetworks(env, config, trunk).to(device)
     loss, advantage = ppo_objectives(nets, config, pixels=trunk is not None)
-    optimizer = torch.optim.Adam(loss.parameters(), lr=config.lr)
+    optimizer = torch.optim.Adam(nets.trainable(), lr=config.lr)
     # Two units: agent steps (what the policy acts on; torchrl's collector counts these as its "frames")
     # and physics frames (agent steps x action repeat; what `config.frames` and the curves count).
     agent_steps_per_batch = config.num_envs * config.episodes_per_batch * agent_steps
@@ -226,7 +239,7 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
         if config.anneal_lr:
             for group in optimizer.param_groups:
                 group["lr"] = config.lr * (1.0 - state.batch / total_batches)
-        stats = _update(batch, loss, advantage, optimizer, config)
+        stats = _update(batch, nets.common, loss, advantage, optimizer, config)
         # After the update: its importance ratios compare log-probabilities under the statistics the batch
         # was collected with; the next batch is collected with the new ones.
         if nets.normalizer is not None:
@@ -251,8 +264,10 @@ def train_ppo(make_env: EnvFactory, config: PPOConfig, seed: int, workdir: Path,
     return nets, state
 
 
-def _update(batch, loss: ClipPPOLoss, advantage: GAE, optimizer: torch.optim.Optimizer,
-            config: PPOConfig) -> dict[str, float]:
+def _update(batch, common: Callable[[TensorDictBase], TensorDictBase], loss: ClipPPOLoss, advantage: GAE,
+            optimizer: torch.optim.Optimizer, config: PPOConfig) -> dict[str, float]:
+    """`epochs` passes of shuffled minibatches; each minibatch goes through `common` (the heads' shared
+    input) once, then the loss of both heads."""
     batch = batch.clone()  # on the policy's device (the collector's storing_device)
     batch.set(("next", "reward"), batch.get(("next", "reward")) * config.reward_scale)
     with torch.no_grad():
@@ -263,13 +278,13 @@ def _update(batch, loss: ClipPPOLoss, advantage: GAE, optimizer: torch.optim.Opt
     count = 0
     for _ in range(config.epochs):
         for index in torch.randperm(n).split(config.minibatch_size):
-            parts = loss(flat[index])
+            parts = loss(common(flat[index]))
             total = parts["loss_objective"] + parts["loss_critic"] + parts.get("loss_entropy", 0.0)
             if not torch.isfinite(total):
                 raise TrainingError(f"PPO loss became {float(total)}; stopping without a result")
             optimizer.zero_grad()
             total.backward()
-            nn.utils.clip_grad_norm_(loss.parameters(), config.max_grad_norm)
+            nn.utils.clip_grad_norm_(optimizer.param_groups[0]["params"], config.max_grad_norm)
             optimizer.step()
             for key in ("loss_objective", "loss_critic", *DIAGNOSTICS.values()):
                 if key in parts.keys():
