@@ -1,5 +1,6 @@
 """PPO collection frames/s (torchrl Collector, untrained PPO policy) on mfTCN5 embeddings against true
-state (target >= 0.5), and on true state against torchrl's SerialEnv of DMControlEnv (target >= 2x).
+state (target >= 0.5), and on true state against torchrl's SerialEnv of DMControlEnv (target >= 2x); the PPO
+update on pixels-cnn clips against each head running the trunk (target >= 2x).
 
 Run: `pytest benchmarks/bench_ppo.py -q -s`.
 """
@@ -13,3 +14,7 @@ def test_ppo_pixels_ratio(record_rows, sizes):
 
 def test_ppo_state_ratio(record_rows, sizes):
     record_rows(bench.bench_ppo_state, sizes)
+
+
+def test_ppo_update_pixels_ratio(record_rows, sizes):
+    record_rows(bench.bench_ppo_update_pixels, sizes)

@@ -429,3 +429,54 @@ def test_evaluation_closes_its_environments(monkeypatch):
     nets = PolicyNetworks(make_env(2, 0), PPO, None)
     evaluate_policy(make_env, nets, episodes=2, num_envs=3, seed=0)
     assert closed == [3]
+
+
+def test_the_pixel_update_computes_what_each_head_running_the_trunk_computes():
+    """The harness's update (trunk once per minibatch for both heads, channels-last weights) moves every
+    weight as torchrl's ClipPPOLoss does when given the whole actor and critic operators (each head running
+    its own pass of the trunk, default layout): the speed-up changes no number beyond float rounding."""
+    import copy
+    from dataclasses import replace
+
+    from torch import nn
+    from torchrl.collectors import Collector
+    from torchrl.objectives import ClipPPOLoss
+
+    from mftcn_bench.encoders.baselines import PixelsCNNNet
+    from mftcn_bench.encoders.frame_cnn import CNNConfig
+    from mftcn_bench.rl.observation import PixelClip, observed_env
+    from mftcn_bench.rl.ppo import PolicyNetworks, _update, ppo_objectives
+    from mftcn_bench.tasks.control import ClipTrunk
+
+    config = replace(PPO, num_envs=2, epochs=2, minibatch_size=8)
+    env = observed_env(ENV, 2, 0, None, 8, True, pixel_clip=PixelClip(1, 1))
+    torch.manual_seed(0)
+    net = PixelsCNNNet(CNNConfig(channels=[8, 8], kernels=[5, 3], strides=[2, 2]), 1, 8)
+    reference_net = copy.deepcopy(net)
+    torch.manual_seed(1)
+    nets = PolicyNetworks(env, config, ClipTrunk(net, 8))
+    torch.manual_seed(1)
+    reference = PolicyNetworks(env, config, ClipTrunk(reference_net, 8))
+    assert next(nets.common.parameters()).is_contiguous(memory_format=torch.channels_last)
+    initial = torch.cat([p.detach().flatten() for p in nets.trainable()])
+    assert torch.equal(initial, torch.cat([p.detach().flatten() for p in reference.trainable()]))
+    collector = Collector(env, nets.policy, frames_per_batch=20, total_frames=20, reset_at_each_iter=True,
+                          auto_register_policy_transforms=False)
+    batch = next(iter(collector))
+    collector.shutdown()
+
+    loss, advantage = ppo_objectives(nets, config, pixels=True)
+    reference_loss = ClipPPOLoss(reference.policy, reference.value, clip_epsilon=config.clip_epsilon,
+                                 clip_value=config.clip_value, entropy_coeff=config.entropy_coeff,
+                                 critic_coeff=config.critic_coeff, loss_critic_type="l2", normalize_advantage=True)
+    torch.manual_seed(2)
+    stats = _update(batch, nets.common, loss, advantage, torch.optim.Adam(nets.trainable(), lr=1e-3), config)
+    torch.manual_seed(2)
+    reference_stats = _update(batch, nn.Identity(), reference_loss, ppo_objectives(reference, config, pixels=True)[1],
+                              torch.optim.Adam(reference_loss.parameters(), lr=1e-3), config)
+    moved = torch.cat([p.detach().flatten() for p in nets.trainable()])
+    expected = torch.cat([p.detach().flatten() for p in reference.trainable()])
+    assert (moved - initial).abs().max() > 1e-4, "the update moved the weights"
+    assert torch.allclose(moved, expected, atol=1e-5), float((moved - expected).abs().max())
+    assert stats.keys() == reference_stats.keys()
+    assert all(abs(stats[k] - reference_stats[k]) < 1e-4 for k in stats)

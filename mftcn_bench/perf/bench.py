@@ -13,6 +13,7 @@ with OMP/MKL/OpenBLAS at 1 thread), so a ratio is not an artefact of thread coun
 | PPO collection frames/s on mfTCN5 embeddings (96x48), each stream | the same loop rendering only | >= 0.7x |
 | PPO collection frames/s on mfTCN5 embeddings (96x48), agent rate | the physics-rate stream; true state | report |
 | PPO collection frames/s on true state | torchrl SerialEnv of 8 DMControlEnv | >= 2x |
+| PPO update minibatches/s on pixels-cnn clips (cheetah) | each head running the trunk, default layout | >= 2x |
 | encoder training clips/s, mfTCN5 | each clip through the network on its own | report |
 | feature-cache build frames/s (EfficientNet-Lite0 to block 10) | the raw base forward on the same frames | >= 0.8x |
 | the frozen base's forward frames/s on the specs' engine (96x48, 160x160) | eager PyTorch | report |
@@ -23,7 +24,7 @@ with OMP/MKL/OpenBLAS at 1 thread), so a ratio is not an artefact of thread coun
 
 The machinery (targets, rows, alternation, the table) is in `timing`, the data and encoders the figures
 share in `fixtures`, and each family of figures in its own module, a function per figure returning
-`BenchRow`s: `rendering`, `streaming`, `collection` (PPO), `training`, `frozen_base`, `embedding`,
+`BenchRow`s: `rendering`, `streaming`, `collection` (PPO), `ppo_update`, `training`, `frozen_base`, `embedding`,
 `probe_memory` and `bench_device`. This module names the figures and runs them (`run_bench`); the command
 is `mftcn_bench.cli.bench_command`.
 """
@@ -39,6 +40,7 @@ from mftcn_bench.perf.bench_device import bench_device
 from mftcn_bench.perf.collection import bench_ppo_pixels, bench_ppo_state
 from mftcn_bench.perf.embedding import bench_embedding
 from mftcn_bench.perf.frozen_base import bench_base_engine, bench_feature_cache
+from mftcn_bench.perf.ppo_update import bench_ppo_update_pixels
 from mftcn_bench.perf.probe_memory import bench_probe_rss
 from mftcn_bench.perf.rendering import bench_render
 from mftcn_bench.perf.streaming import bench_streaming
@@ -49,10 +51,10 @@ from mftcn_bench.perf.training import bench_dataset_read, bench_head_training, b
 # `bench.QUICK`, `bench.format_table`), as it did when they all lived here.
 __all__ = ["FIGURES", "FULL", "ON_DEVICE_ONLY", "QUICK", "BenchRow", "Sizes", "bench_base_engine", "bench_dataset_read",
            "bench_device", "bench_embedding", "bench_feature_cache", "bench_head_training", "bench_ppo_pixels",
-           "bench_ppo_state", "bench_probe_rss", "bench_render", "bench_streaming", "bench_training", "format_table",
-           "run_bench"]
+           "bench_ppo_state", "bench_ppo_update_pixels", "bench_probe_rss", "bench_render", "bench_streaming",
+           "bench_training", "format_table", "run_bench"]
 
-FIGURES = ("render", "streaming", "ppo-pixels", "ppo-state", "training", "feature-cache", "base-engine",
+FIGURES = ("render", "streaming", "ppo-pixels", "ppo-state", "ppo-update", "training", "feature-cache", "base-engine",
            "head-training", "embedding", "dataset", "probe-rss", "device")
 # Run by default only on a GPU (`--device` resolving to CUDA); on the CPU `--only device` checks the path.
 ON_DEVICE_ONLY = ("device",)
@@ -76,6 +78,7 @@ def run_bench(sizes: Sizes, only: Sequence[str] = FIGURES, workdir: Path | None 
             "streaming": lambda: bench_streaming(sizes),
             "ppo-pixels": lambda: bench_ppo_pixels(sizes),
             "ppo-state": lambda: bench_ppo_state(sizes),
+            "ppo-update": lambda: bench_ppo_update_pixels(sizes),
             "training": lambda: bench_training(sizes, work),
             "feature-cache": lambda: bench_feature_cache(sizes, work),
             "base-engine": lambda: bench_base_engine(sizes),

@@ -87,6 +87,7 @@ class Sizes:
     ppo_pixel_steps: int  # agent steps per collected batch (one episode, action repeat 8) from pixels
     ppo_state_steps: int  # the same on true state
     ppo_block_s: float  # each alternation block collects batches for at least this long
+    ppo_update_minibatches: int  # minibatches of the pixel-trunk PPO update per timed block
     data_train: int  # rendered cartpole episodes (96x48, 2 views) for training and reading
     data_length: int
     train_steps: int  # training steps per block
@@ -98,11 +99,13 @@ class Sizes:
 
 
 QUICK = Sizes("quick", rounds=2, render_frames=4, render_rounds=4, stream_steps=5, stream_rounds=6,
-              ppo_envs=8, ppo_pixel_steps=4, ppo_state_steps=25, ppo_block_s=1.0, data_train=3, data_length=100,
+              ppo_envs=8, ppo_pixel_steps=4, ppo_state_steps=25, ppo_block_s=1.0, ppo_update_minibatches=1,
+              data_train=3, data_length=100,
               train_steps=2, embed_frames=60, probe_length=100, probe_train=(1,), probe_fit_fraction=0.1,
               probe_fit_epochs=2)
 FULL = Sizes("full", rounds=4, render_frames=10, render_rounds=20, stream_steps=10, stream_rounds=24,
-             ppo_envs=8, ppo_pixel_steps=25, ppo_state_steps=125, ppo_block_s=5.0, data_train=4, data_length=400,
+             ppo_envs=8, ppo_pixel_steps=25, ppo_state_steps=125, ppo_block_s=5.0, ppo_update_minibatches=4,
+             data_train=4, data_length=400,
              train_steps=6, embed_frames=400, probe_length=1000, probe_train=(1, 4), probe_fit_fraction=1.0,
              probe_fit_epochs=None)
 
