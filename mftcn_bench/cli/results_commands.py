@@ -20,7 +20,8 @@ from mftcn_bench.core.home import BenchHome
 from mftcn_bench.core.specs import parse_override
 
 REPORT_CHOICES = ["probe", "swingup", "cheetah", "pouring", "pouring-attributes", "swingup-limits",
-                  "cheetah-limits", "probe-streams", "swingup-streams", "imitate", "scorecard", "all"]
+                  "swingup-160-limits", "cheetah-limits", "probe-streams", "swingup-streams", "imitate", "scorecard",
+                  "all"]
 PLOT_CHOICES = ["curves", "probe-lookback", "pouring-lookback"]
 
 
