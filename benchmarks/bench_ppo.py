@@ -12,6 +12,10 @@ def test_ppo_pixels_ratio(record_rows, sizes):
     record_rows(bench.bench_ppo_pixels, sizes)
 
 
+def test_ppo_pixels_160_ratio(record_rows, sizes):
+    record_rows(bench.bench_ppo_pixels_160, sizes)
+
+
 def test_ppo_state_ratio(record_rows, sizes):
     record_rows(bench.bench_ppo_state, sizes)
 

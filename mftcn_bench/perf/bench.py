@@ -12,6 +12,7 @@ with OMP/MKL/OpenBLAS at 1 thread), so a ratio is not an artefact of thread coun
 | streaming mfTCN step on the pretrained base, lookback 29 | streaming, lookback 1 | <= 1.3x the cost |
 | PPO collection frames/s on mfTCN5 embeddings (96x48), each stream | the same loop rendering only | >= 0.7x |
 | PPO collection frames/s on mfTCN5 embeddings (96x48), agent rate | the physics-rate stream; true state | report |
+| PPO collection frames/s on mfTCN5 embeddings (160x160, input x0.6) | rendering only; full scale | >= 0.7x; report |
 | PPO collection frames/s on true state | torchrl SerialEnv of 8 DMControlEnv | >= 2x |
 | PPO update minibatches/s on pixels-cnn clips (cheetah) | each head running the trunk, default layout | >= 2x |
 | encoder training clips/s, mfTCN5 | each clip through the network on its own | report |
@@ -37,7 +38,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from mftcn_bench.perf.bench_device import bench_device
-from mftcn_bench.perf.collection import bench_ppo_pixels, bench_ppo_state
+from mftcn_bench.perf.collection import bench_ppo_pixels, bench_ppo_pixels_160, bench_ppo_state
 from mftcn_bench.perf.embedding import bench_embedding
 from mftcn_bench.perf.frozen_base import bench_base_engine, bench_feature_cache
 from mftcn_bench.perf.ppo_update import bench_ppo_update_pixels
@@ -51,11 +52,12 @@ from mftcn_bench.perf.training import bench_dataset_read, bench_head_training, b
 # `bench.QUICK`, `bench.format_table`), as it did when they all lived here.
 __all__ = ["FIGURES", "FULL", "ON_DEVICE_ONLY", "QUICK", "BenchRow", "Sizes", "bench_base_engine", "bench_dataset_read",
            "bench_device", "bench_embedding", "bench_feature_cache", "bench_head_training", "bench_ppo_pixels",
+           "bench_ppo_pixels_160",
            "bench_ppo_state", "bench_ppo_update_pixels", "bench_probe_rss", "bench_render", "bench_streaming",
            "bench_training", "format_table", "run_bench"]
 
-FIGURES = ("render", "streaming", "ppo-pixels", "ppo-state", "ppo-update", "training", "feature-cache", "base-engine",
-           "head-training", "embedding", "dataset", "probe-rss", "device")
+FIGURES = ("render", "streaming", "ppo-pixels", "ppo-pixels-160", "ppo-state", "ppo-update", "training",
+           "feature-cache", "base-engine", "head-training", "embedding", "dataset", "probe-rss", "device")
 # Run by default only on a GPU (`--device` resolving to CUDA); on the CPU `--only device` checks the path.
 ON_DEVICE_ONLY = ("device",)
 
@@ -77,6 +79,7 @@ def run_bench(sizes: Sizes, only: Sequence[str] = FIGURES, workdir: Path | None 
             "render": lambda: [bench_render(sizes, "swingup"), bench_render(sizes, "swingup-moving")],
             "streaming": lambda: bench_streaming(sizes),
             "ppo-pixels": lambda: bench_ppo_pixels(sizes),
+            "ppo-pixels-160": lambda: bench_ppo_pixels_160(sizes),
             "ppo-state": lambda: bench_ppo_state(sizes),
             "ppo-update": lambda: bench_ppo_update_pixels(sizes),
             "training": lambda: bench_training(sizes, work),
