@@ -69,3 +69,34 @@ def test_the_mftcn_variants_are_spec_files_of_one_family():
     assert mftcn == ["mftcn1", "mftcn13", "mftcn2", "mftcn29", "mftcn4", "mftcn5", "mftcn7"]
     assert {encoders[n].registered_by.name for n in mftcn} == {"mftcn.family"}
     assert encoders["mftcn29"].spec.lookback == 29 and encoders["mftcn29"].spec.model["base"]["layer"] == 10
+
+
+def test_a_plugin_in_a_namespace_package_keeps_its_specs_beside_its_code(tmp_path, monkeypatch):
+    """`acme` is a namespace package (no `__init__.py`) shared by several distributions; the plugin's
+    code and specs sit in `acme.vision`: the registry finds `acme/vision/specs/encoders/<name>.toml`,
+    nearest first, without importing the encoder's module."""
+    import importlib
+
+    from mftcn_bench.core import identity
+    from tests.plugins import TRUE_STATE_SPEC
+
+    package = tmp_path / "acme" / "vision"
+    (package / "specs" / "encoders").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "enc.py").write_text("raise ImportError('imported while resolving specs')\n")
+    (package / "specs" / "encoders" / "acme-enc.toml").write_text(
+        TRUE_STATE_SPEC.replace('description = "', 'description = "acme: ', 1))
+    dist = tmp_path / "acme_vision-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: acme-vision\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text("[mftcn_bench.encoders]\nacme-enc = acme.vision.enc:Enc\n")
+    monkeypatch.setattr(sys, "path", [str(tmp_path), *sys.path])
+    identity._package_root.cache_clear()
+    importlib.invalidate_caches()
+    found = registry.entries("encoders")
+    assert found["acme-enc"].spec.description.startswith("acme: ")
+    assert "acme.vision.enc" not in sys.modules
+    # With the spec file missing, the error names the file and the top-level package looked in last.
+    (package / "specs" / "encoders" / "acme-enc.toml").unlink()
+    with pytest.warns(registry.PluginWarning, match=r"no spec file specs/encoders/acme-enc.toml in package 'acme'"):
+        registry.entries("encoders")

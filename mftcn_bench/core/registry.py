@@ -2,7 +2,10 @@
 
 Groups `mftcn_bench.encoders` and `mftcn_bench.tasks`. An entry point's name is the variant
 (`mftcn5`, `cartpole-probe`), its value the implementing class. The variant's spec file is
-`specs/encoders/<name>.toml` or `specs/tasks/<name>.toml` inside the entry point's top-level package.
+`specs/encoders/<name>.toml` or `specs/tasks/<name>.toml` in the nearest package, from the entry point's
+module up to its top level, that ships one (`acme.vision.enc:Encoder` looks in `acme.vision.enc`, then
+`acme.vision`, then `acme`), so a plugin inside a namespace package (`acme.vision`) keeps its specs beside
+its code.
 Resolving a name reads spec files only; the implementation is imported when a variant is used (and by
 `list`, which checks every one), so a plugin that fails to import costs a warning, never the rest of the
 harness.
@@ -12,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import importlib.resources
+import importlib.util
 import sys
 import warnings
 from dataclasses import dataclass
@@ -68,6 +72,29 @@ def _spec_folder(package: str, folder: str):
         raise SpecError(f"package {package!r} failed to import: {type(exc).__name__}: {exc}") from None
 
 
+def _packages_of(module: str) -> list[str]:
+    """The packages `module` sits in, nearest first (the module itself is not imported to find its specs)."""
+    parts = module.split(".")
+    return [".".join(parts[:i]) for i in range(len(parts) - 1, 0, -1)] or [module]
+
+
+def _has(package: str, *path: str) -> bool:
+    """Whether `package` ships `specs/<path>`; found without running the package's `__init__`."""
+    try:
+        spec = importlib.util.find_spec(package)
+    except Exception:  # noqa: BLE001 - a broken parent package: not this one
+        return False
+    locations = (spec.submodule_search_locations or []) if spec is not None else []
+    return any(Path(location, "specs", *path).exists() for location in locations)
+
+
+def _spec_package(module: str, kind: Kind, name: str | None = None) -> str:
+    """The nearest package around `module` holding `specs/<kind>/<name>.toml` (or, without a name, a
+    `specs/<kind>` folder); the top-level package when none does (its error then names the file)."""
+    path = (kind, f"{name}.toml") if name is not None else (kind,)
+    return next((package for package in _packages_of(module) if _has(package, *path)), module.split(".")[0])
+
+
 def _spec_data(package: str, kind: Kind, name: str) -> dict[str, Any]:
     """The spec file `specs/<kind>/<name>.toml` of `package` with `extends` and `dataset = "<name>"`
     resolved (`load_spec_tree`)."""
@@ -89,7 +116,7 @@ def _make_spec(kind: Kind, name: str, data: dict[str, Any]) -> EncoderSpec | Tas
 
 def _family_variants(kind: Kind, ep: EntryPoint) -> dict[str, tuple[EntryPoint, dict[str, Any]]]:
     """Every spec file of the family that `ep` (`<family>.family`) registers, in its own package."""
-    family, package = ep.name[: -len(FAMILY_SUFFIX)], ep.module.split(".")[0]
+    family, package = ep.name[: -len(FAMILY_SUFFIX)], _spec_package(ep.module, kind)
     out = {}
     for resource in sorted(_spec_folder(package, kind).iterdir(), key=lambda r: r.name):
         name = resource.name.removesuffix(".toml")
@@ -109,7 +136,7 @@ def _entry_points(group: str, path: tuple[str, ...]) -> tuple[EntryPoint, ...]:
 def _spec_stamps(kind: Kind, eps: tuple[EntryPoint, ...]) -> tuple:
     """(file, mtime) of every spec file the scan of `kind` may read: a changed or added file rescans."""
     stamps = []
-    for package in sorted({ep.module.split(".")[0] for ep in eps}):
+    for package in sorted({_spec_package(ep.module, kind) for ep in eps}):
         try:
             root = Path(str(importlib.resources.files(package) / "specs"))
         except Exception:  # noqa: BLE001 - the scan reports a broken package itself
@@ -145,8 +172,8 @@ def _scan_now(kind: Kind, eps: tuple[EntryPoint, ...]) -> tuple[dict[str, Entry]
         if ep.name in found or ep.name in broken:
             continue  # the same distribution seen twice on sys.path
         try:
-            found[ep.name] = Entry(kind, ep, _make_spec(kind, ep.name, _spec_data(ep.module.split(".")[0], kind,
-                                                                              ep.name)), ep)
+            package = _spec_package(ep.module, kind, ep.name)
+            found[ep.name] = Entry(kind, ep, _make_spec(kind, ep.name, _spec_data(package, kind, ep.name)), ep)
         except BenchError as exc:
             broken[ep.name] = str(exc)
     for family in families:  # a variant with an entry point of its own keeps it
