@@ -501,11 +501,11 @@ def test_checkpoint_trained_at_another_resolution(capsys, finished):
     """An encoder checkpoint made for 16x24 frames, found where a 32x48 run looks for its encoder."""
     from mftcn_bench.core.home import BenchHome
     from mftcn_bench.core.specs import parse_override
-    from mftcn_bench.run.runner import encoder_workdir, prepare, prepare_dataset
+    from mftcn_bench.run.artifacts import encoder_workdir, prepare_dataset
+    from mftcn_bench.run.plan import RunRequest, prepare
 
     argv = [*TINY_MFTCN, "--set", "task.dataset.height=32", "--set", "task.dataset.width=48"]
     overrides = [parse_override(argv[i + 1]) for i, a in enumerate(argv) if a == "--set"]
-    from mftcn_bench.run.runner import RunRequest
 
     home = BenchHome.resolve(finished)
     prepared = prepare(RunRequest("mftcn1", "cartpole-probe", "smoke", 0, tuple(overrides)))

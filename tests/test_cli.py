@@ -108,7 +108,8 @@ def test_every_registered_encoder_runs_the_smoke_probe(smoke_home, monkeypatch):
     from mftcn_bench.core import registry
     from mftcn_bench.core.errors import BenchError
     from mftcn_bench.core.home import BenchHome
-    from mftcn_bench.run.runner import RunRequest, run
+    from mftcn_bench.run.plan import RunRequest
+    from mftcn_bench.run.runner import run
 
     home = BenchHome.resolve(smoke_home)
     for name in registry.entries("encoders"):

@@ -15,7 +15,8 @@ from mftcn_bench.core.errors import BenchError
 from mftcn_bench.core.registry import get
 from mftcn_bench.data.synthetic import synthetic_collector
 from mftcn_bench.results.store import ResultStore
-from mftcn_bench.run.runner import RunRequest, encoder_key_of, place_encoder, prepare, run_id_of
+from mftcn_bench.run.artifacts import place_encoder
+from mftcn_bench.run.plan import RunRequest, encoder_key_of, prepare, run_id_of
 from tests.test_bad_inputs import TINY_MFTCN, TINY_TASK
 
 GPU = Placement("cuda:0", gpu="NVIDIA H200", cuda="12.8", cudnn=91000)
@@ -132,7 +133,7 @@ def test_deterministic_holds_for_the_run_only(tmp_path, monkeypatch):
     import torch
 
     from mftcn_bench.core.home import BenchHome
-    from mftcn_bench.run.runner import RunRequest, run
+    from mftcn_bench.run.runner import run
     from mftcn_bench.tasks.probe import CartpoleProbe
 
     seen: list[tuple[bool, str]] = []

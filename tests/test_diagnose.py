@@ -18,7 +18,7 @@ from mftcn_bench.data.synthetic import synthetic_collector, synthetic_config
 from mftcn_bench.diagnose.coverage import cartpole_physics, coverage, dataset_coverage, dataset_states
 from mftcn_bench.diagnose.policy_range import render_states, replay_policy
 from mftcn_bench.diagnose.state_probe import probe_cameras
-from mftcn_bench.run.runner import RunRequest, prepare
+from mftcn_bench.run.plan import RunRequest, prepare
 
 SCRIPTS = Path(__file__).resolve().parent.parent / "scripts" / "diagnostics"
 PROBE_TASK = "cartpole-probe-agent-rate"  # its smoke data set is swing-up's: one collection for the module

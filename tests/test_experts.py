@@ -11,7 +11,7 @@ from mftcn_bench.core.errors import TrainingError
 from mftcn_bench.core.home import BenchHome
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.rl import expert as experts
-from mftcn_bench.run.runner import RunRequest, prepare
+from mftcn_bench.run.plan import RunRequest, prepare
 
 CHEETAH_SMOKE = ["cheetah", "--preset", "smoke", "--set", "task.dataset.train_episodes=2",
                  "--set", "task.dataset.test_episodes=1", "--set", "task.dataset.episode_length=20"]

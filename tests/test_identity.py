@@ -8,7 +8,8 @@ import pytest
 from mftcn_bench.core import identity
 from mftcn_bench.results.selection import code_label
 from mftcn_bench.results.store import ResultStore
-from mftcn_bench.run.runner import RunRequest, encoder_key_of, prepare, run, run_id_of
+from mftcn_bench.run.plan import RunRequest, encoder_key_of, prepare, run_id_of
+from mftcn_bench.run.runner import run
 from tests.plugins import install
 
 ENCODER = "from mftcn_bench.encoders.baselines import TrueStateEncoder\n\n\nclass PlugEncoder(TrueStateEncoder):\n" \

@@ -161,12 +161,14 @@ def test_the_demonstrations_are_the_streams_the_clone_sees_online(stand_in_exper
     from mftcn_bench.rl.demos import ExpertDemoCollector
     from mftcn_bench.rl.observation import observed_env
     from mftcn_bench.rl.observers import make_observer
-    from mftcn_bench.run.runner import RunRequest, prepare
+    from mftcn_bench.run.plan import RunRequest, prepare_with_encoder
 
-    prepared = prepare(RunRequest("random-state", "imitate-swingup", "smoke", 0,
-                                  (("task.env.episode_length", 160), ("task.demos.episode_length", 20),
-                                   ("task.demos.action_noise", 0.0))))  # replayed: the applied actions
-    task, encoder = prepared.task, prepared.untrained[0]
+    request = RunRequest("random-state", "imitate-swingup", "smoke", 0,
+                         (("task.env.episode_length", 160), ("task.demos.episode_length", 20),
+                          ("task.demos.action_noise", 0.0)))  # replayed: the applied actions
+    prepared, encoder = prepare_with_encoder(request)
+    assert encoder is not None  # the task names its frame size: the plan constructed the encoder
+    task = prepared.task
     expert = Balancer()
     episode = ExpertDemoCollector(None, task.expert_env, task.expert_ppo, policy=expert)(task.demos_config, 0)
     frames, state, action = episode["frames"][0], episode["state"], episode["action"]
@@ -189,7 +191,7 @@ def test_noise_drives_the_recording_and_the_expert_labels_it():
     """DART: with `action_noise` the episode leaves the noiseless one's path, and every recorded action is
     still the expert's own at the recorded state; at 0 the data set's config (its id) carries no noise key."""
     from mftcn_bench.rl.demos import ExpertDemoCollector
-    from mftcn_bench.run.runner import RunRequest, prepare
+    from mftcn_bench.run.plan import RunRequest, prepare
 
     def episode(noise: float) -> dict[str, np.ndarray]:
         task = prepare(RunRequest("true-state", "imitate-swingup", "smoke", 0,
@@ -210,7 +212,7 @@ def test_noise_drives_the_recording_and_the_expert_labels_it():
 def test_the_encoder_is_the_matching_ppo_tasks(preset):
     """imitate-swingup trains its encoder on swingup's data with swingup's budget (one fit serves both);
     imitate-cheetah on the cheetah task's expert demonstrations, and clones from that very data set."""
-    from mftcn_bench.run.runner import RunRequest, prepare
+    from mftcn_bench.run.plan import RunRequest, prepare
 
     for imitate, control in (("imitate-swingup", "swingup"), ("imitate-cheetah", "cheetah")):
         for encoder in ("mftcn5", "true-state"):

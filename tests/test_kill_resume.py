@@ -38,7 +38,7 @@ def synthetic_dataset(home: Path, args: list[str]) -> None:
     from mftcn_bench.core.specs import parse_override
     from mftcn_bench.data.dataset import ensure_dataset
     from mftcn_bench.data.synthetic import synthetic_collector
-    from mftcn_bench.run.runner import RunRequest, prepare
+    from mftcn_bench.run.plan import RunRequest, prepare
 
     overrides = tuple(parse_override(args[i + 1]) for i, a in enumerate(args) if a == "--set")
     prepared = prepare(RunRequest(args[args.index("--encoder") + 1], "cartpole-probe", "smoke", 0, overrides))
@@ -313,7 +313,7 @@ def test_four_concurrent_runs_share_one_dataset_and_lose_no_row(tmp_path):
 def test_a_checkpoint_without_its_completion_marker_is_fitted_again(tmp_path):
     """A plugin's `save` cut off by a kill leaves `model.pt` but no `fit.json`: never taken as finished."""
     from mftcn_bench.core.specs import EncoderSpec
-    from mftcn_bench.run.runner import _fit_or_load
+    from mftcn_bench.run.artifacts import _fit_or_load
 
     class Recording:
         privileged_inputs = ("state", "action")  # nothing withheld: `fit` gets the (here absent) dataset as is

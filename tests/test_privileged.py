@@ -23,7 +23,7 @@ from mftcn_bench.encoders.privileged import (
 from mftcn_bench.results.leaderboard import render_boards
 from mftcn_bench.results.store import ResultStore
 from mftcn_bench.rl.observers import make_observer
-from mftcn_bench.run.runner import construct_encoder
+from mftcn_bench.run.construct import construct_encoder
 from tests.plugins import install
 
 RANDOM_STATE_SPEC = (Path(__file__).resolve().parent.parent / "encoders" / "random-state.toml").read_text()

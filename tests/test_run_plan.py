@@ -7,8 +7,10 @@ import time
 
 import pytest
 
-from mftcn_bench.run import runner
-from mftcn_bench.run.runner import RunRequest, prepare, run
+from mftcn_bench.encoders.base import Encoder
+from mftcn_bench.run import artifacts, plan, runner
+from mftcn_bench.run.plan import RunRequest, prepare, prepare_with_encoder
+from mftcn_bench.run.runner import run
 from tests.test_identity import TINY
 
 FIT = (*TINY, ("encoder.train.steps", 4), ("encoder.train.checkpoint_every", 2), ("encoder.train.episode_pool", 2),
@@ -32,8 +34,8 @@ def test_the_difference_variant_of_cheetah_shares_its_expert_data_and_fit_and_is
     plain, difference = (prepare(RunRequest("mftcn5", task, "paper", 0)) for task in ("cheetah", "cheetah-difference"))
     assert difference.task.env_config.embedding_difference and not plain.task.env_config.embedding_difference
     assert difference.dataset_key == plain.dataset_key
-    assert runner.encoder_key_of(difference, "data") == runner.encoder_key_of(plain, "data")
-    assert runner.run_id_of(difference, "data") != runner.run_id_of(plain, "data")
+    assert plan.encoder_key_of(difference, "data") == plan.encoder_key_of(plain, "data")
+    assert plan.run_id_of(difference, "data") != plan.run_id_of(plain, "data")
 
 
 def test_an_encoder_that_fits_nothing_collects_nothing_on_a_control_task(home):
@@ -49,15 +51,30 @@ def test_an_encoder_that_fits_nothing_collects_nothing_on_a_control_task(home):
 
 def test_the_plan_constructs_the_encoder_once_per_run(home, monkeypatch):
     built: list[str] = []
-    construct = runner.construct_encoder
+    construct = plan.construct_encoder
 
     def counting(entry, *args, **kwargs):
         built.append(entry.name)
         return construct(entry, *args, **kwargs)
 
-    monkeypatch.setattr(runner, "construct_encoder", counting)
+    for module in (plan, artifacts):  # the plan constructs it; a build without it would construct another
+        monkeypatch.setattr(module, "construct_encoder", counting)
     run(RunRequest("lite0-features", "cartpole-probe", "smoke", 0, TINY), home, show_progress=False)
     assert built == ["lite0-features"]
+
+
+def test_the_plan_holds_no_encoder_and_hands_its_own_to_the_build(home):
+    """The plan is data (a sweep keeps many, not their weights); the encoder constructed to plan the run
+    comes back beside it, and the build uses that one rather than constructing another."""
+    request = RunRequest("true-state", "swingup", "smoke")
+    prepared, untrained = prepare_with_encoder(request)
+    assert isinstance(untrained, Encoder)
+    assert not [name for name, value in vars(prepared).items() if isinstance(value, Encoder)]
+    assert plan.run_id_of(prepared, None) == plan.run_id_of(prepare(request), None)  # one plan either way
+    encoder, fit = artifacts.build_encoder(prepared, None, home, show_progress=False, untrained=untrained)
+    assert encoder is untrained and fit == {"fitted": False, "reused": False, "device": "cpu"}
+    other, _ = artifacts.build_encoder(prepared, None, home, show_progress=False)
+    assert other is not untrained
 
 
 @pytest.mark.slow

@@ -83,7 +83,7 @@ def test_encoder_defaults_task_wide_then_preset_then_overrides():
 @pytest.mark.parametrize("encoder", ["true-state", "random-state"])
 def test_state_encoders_take_the_pouring_state_size_from_the_task(encoder):
     from mftcn_bench.data.pouring_labels import STATE_COLUMNS
-    from mftcn_bench.run.runner import RunRequest, prepare
+    from mftcn_bench.run.plan import RunRequest, prepare
 
     config = prepare(RunRequest(encoder, "pouring", "smoke")).config
     assert config["encoder"]["embedding_dim"] == len(STATE_COLUMNS)

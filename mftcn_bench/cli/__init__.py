@@ -94,7 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_run(args: argparse.Namespace) -> None:
-    from mftcn_bench.run.runner import RunRequest, run
+    from mftcn_bench.run.plan import RunRequest
+    from mftcn_bench.run.runner import run
 
     request = RunRequest(args.encoder, args.task, args.preset, args.seed,
                          tuple(parse_override(o) for o in args.overrides), args.force,
@@ -132,7 +133,8 @@ def cmd_list(args: argparse.Namespace) -> None:
 
 
 def cmd_data(args: argparse.Namespace) -> None:
-    from mftcn_bench.run.runner import RunRequest, prepare, prepare_dataset
+    from mftcn_bench.run.artifacts import prepare_dataset
+    from mftcn_bench.run.plan import RunRequest, prepare
 
     overrides = tuple(parse_override(o) for o in args.overrides)
     prepared = prepare(RunRequest(DEFAULT_ENCODER, args.task, args.preset, 0, overrides))

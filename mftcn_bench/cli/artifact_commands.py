@@ -45,7 +45,7 @@ def add_commands(commands: argparse._SubParsersAction, common: Callable[[argpars
 
 def cmd_expert_train(args: argparse.Namespace) -> None:
     from mftcn_bench.rl.expert import pin_expert, pinned_path, train_expert
-    from mftcn_bench.run.runner import RunRequest, prepare
+    from mftcn_bench.run.plan import RunRequest, prepare
     from mftcn_bench.tasks.base import RecordsExpert
 
     task = prepare(RunRequest("true-state", args.task, args.preset)).task  # true state: the task's own config

@@ -16,7 +16,7 @@ from mftcn_bench.core.home import BenchHome
 if TYPE_CHECKING:  # the diagnostics import numpy, torch and MuJoCo: only the command that runs loads them
     from mftcn_bench.diagnose.coverage import CoverageFractions
     from mftcn_bench.diagnose.state_probe import ProbeScore
-    from mftcn_bench.run.runner import RunRequest
+    from mftcn_bench.run.plan import RunRequest
 
 
 def _cameras(text: str) -> list[str]:
@@ -87,7 +87,7 @@ def _coverage_row(fractions: CoverageFractions) -> dict[str, Any]:
 
 
 def _request(args: argparse.Namespace) -> RunRequest:
-    from mftcn_bench.run.runner import RunRequest
+    from mftcn_bench.run.plan import RunRequest
 
     return RunRequest(args.encoder, args.task, args.preset, args.seed)
 

@@ -5,5 +5,5 @@ of each camera carries on held-out data (and, for expert demonstrations, off the
 finished control run's stored policy on its test environments and asks where it drives the cart, whether the
 camera sees it there and how well the state probe reads the frames the policy meets. Each returns dataclasses;
 the command line (`cli.diagnose_commands`) prints them. This layer sits above a run (it plans, loads and fits
-through `run.runner`, as a run does) and below the sweeps and the command line.
+through `run.plan` and `run.artifacts`, as a run does) and below the sweeps and the command line.
 """

@@ -32,7 +32,8 @@ from mftcn_bench.diagnose.state_probe import ProbeScore, dimension_names, fit_ca
 from mftcn_bench.encoders.base import Encoder
 from mftcn_bench.rl.ppo import EVAL_SEED_OFFSET, PolicyNetworks
 from mftcn_bench.rl.suite_env import SuiteConfig, suite_env_of
-from mftcn_bench.run.runner import PreparedRun, RunRequest, build_encoder, prepare, prepare_dataset, run_id_of
+from mftcn_bench.run.artifacts import build_encoder, prepare_dataset
+from mftcn_bench.run.plan import PreparedRun, RunRequest, prepare_with_encoder, run_id_of
 from mftcn_bench.sim.rendering import MultiViewRenderer, ensure_gl
 from mftcn_bench.tasks.control import PPOTask
 
@@ -108,21 +109,21 @@ def render_states(config: SuiteConfig, episodes: Sequence[np.ndarray]) -> list[n
     return drawn
 
 
-def _checked(request: RunRequest, episodes: int) -> tuple[PreparedRun, PPOTask]:
+def _checked(request: RunRequest, episodes: int) -> tuple[PreparedRun, Encoder | None, PPOTask]:
     if episodes < 1:
         raise SpecError(f"--episodes must be >= 1, got {episodes}")
-    prepared = prepare(request)
+    prepared, untrained = prepare_with_encoder(request)
     task = prepared.task
     if not isinstance(task, PPOTask) or task.env_config.domain != "cartpole":
         raise SpecError(f"diagnose policy needs a cartpole control task (swingup, swingup-160, ...); "
                         f"{request.task!r} is not one")
-    return prepared, task
+    return prepared, untrained, task
 
 
 def replay_policy(request: RunRequest, home: BenchHome, episodes: int = 8,
                   show_progress: bool = False) -> PolicyRange:
     """Replay the stored policy of `request`'s finished run on at least `episodes` of its test episodes."""
-    prepared, task = _checked(request, episodes)
+    prepared, untrained, task = _checked(request, episodes)
     command = (f"mftcn-bench run --encoder {request.encoder} --task {request.task} --preset {prepared.preset} "
                f"--seed {request.seed}")
     dataset = None
@@ -142,7 +143,7 @@ def replay_policy(request: RunRequest, home: BenchHome, episodes: int = 8,
         raise BenchError(f"run {run_dir.name} of {request.encoder} on {request.task} has no PPO checkpoint "
                          f"({checkpoint} is missing): `{command}` makes one in a home without this run (where the "
                          f"run is stored, its result is reused, not computed again)")
-    encoder, _ = build_encoder(prepared, dataset, home, show_progress=show_progress)
+    encoder, _ = build_encoder(prepared, dataset, home, show_progress=show_progress, untrained=untrained)
     # The run's own environment factory, so that the replay sees exactly what the policy saw.
     make_env, trunk = task.env_factory(encoder)
     env = make_env(min(task.ppo.num_envs, episodes), request.seed + EVAL_SEED_OFFSET)

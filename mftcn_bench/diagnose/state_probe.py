@@ -31,7 +31,8 @@ from mftcn_bench.diagnose.coverage import pick_cameras
 from mftcn_bench.encoders.base import Encoder, embed_episode
 from mftcn_bench.encoders.baselines import CARTPOLE_STATE_COLUMNS, state_embedding
 from mftcn_bench.rl.demos import ExpertDemoCollector
-from mftcn_bench.run.runner import PreparedRun, RunRequest, build_encoder, prepare, prepare_dataset
+from mftcn_bench.run.artifacts import build_encoder, prepare_dataset
+from mftcn_bench.run.plan import PreparedRun, RunRequest, prepare_with_encoder
 from mftcn_bench.sim.rendering import ensure_gl
 from mftcn_bench.tasks.probe import ProbeConfig, ProbeMLP, fit_probe, probe_features
 
@@ -167,13 +168,14 @@ def probe_cameras(request: RunRequest, home: BenchHome, cameras: Sequence[str] |
     if random_episodes < 0:
         raise SpecError(f"--random-episodes must be >= 0, got {random_episodes}")
     # The probe reads the task's data whatever the encoder (a run of true state on swing-up reads none).
-    prepared = replace(prepare(request), reads_data=True)
+    planned, untrained = prepare_with_encoder(request)
+    prepared = replace(planned, reads_data=True)
     dataset_config: Any = prepared.task.dataset_config
     picked = pick_cameras(list(dataset_config["cameras"]), cameras)
     randomised = random_action_collector(prepared) if random_episodes else None
     probe = probe_config(prepared)
     dataset = prepare_dataset(prepared, home, show_progress=show_progress)
-    encoder, _ = build_encoder(prepared, dataset, home, show_progress=show_progress)
+    encoder, _ = build_encoder(prepared, dataset, home, show_progress=show_progress, untrained=untrained)
     # Recorded once, from every camera of the data set: each camera's probe reads its own view of them.
     recorded = [] if randomised is None else [randomised(dataset.config, RANDOM_EPISODE_OFFSET + i)
                                               for i in range(random_episodes)]

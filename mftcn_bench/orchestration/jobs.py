@@ -53,7 +53,9 @@ def one_line(exc: BaseException) -> str:
 
 def _work(spec: JobSpec) -> JobResult:
     from mftcn_bench.core.home import BenchHome
-    from mftcn_bench.run.runner import RunRequest, build_encoder, prepare, prepare_dataset, run
+    from mftcn_bench.run.artifacts import build_encoder, prepare_dataset
+    from mftcn_bench.run.plan import RunRequest, prepare_with_encoder
+    from mftcn_bench.run.runner import run
 
     home = BenchHome.resolve(spec.home)
     request = RunRequest(spec.encoder, spec.task, spec.preset, spec.seed, tuple(spec.overrides),
@@ -61,10 +63,10 @@ def _work(spec: JobSpec) -> JobResult:
     if spec.kind == "run":
         outcome = run(request, home, show_progress=False)
         return JobResult(True, fingerprint=outcome.record.dataset_id, record=outcome.record, reused=outcome.reused)
-    prepared = prepare(request)
+    prepared, untrained = prepare_with_encoder(request)
     dataset = prepare_dataset(prepared, home, show_progress=False)
     if spec.kind == "encoder":
-        _, fit = build_encoder(prepared, dataset, home, show_progress=False)
+        _, fit = build_encoder(prepared, dataset, home, show_progress=False, untrained=untrained)
         return JobResult(True, fingerprint=dataset.fingerprint, reused=bool(fit.get("reused")))
     return JobResult(True, fingerprint=dataset.fingerprint)
 

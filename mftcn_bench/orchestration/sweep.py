@@ -23,7 +23,7 @@ from mftcn_bench.data.dataset import find_dataset
 from mftcn_bench.orchestration.executors import Executor, check_executor_args, make_executor
 from mftcn_bench.orchestration.jobs import JobKind, JobResult, JobSpec
 from mftcn_bench.results.store import ResultStore, RunRecord
-from mftcn_bench.run.runner import PreparedRun, RunRequest, encoder_key_of, prepare, run_id_of
+from mftcn_bench.run.plan import PreparedRun, RunRequest, encoder_key_of, prepare, run_id_of
 
 
 class SweepFailed(BenchError):
@@ -120,9 +120,9 @@ class Sweep:
         if request.threads < 1:
             raise SpecError(f"--threads must be >= 1, got {request.threads}")
         self.request, self.home, self.echo, self.listener = request, home, echo, listener
-        self.prepared: list[PreparedRun] = [  # the runs' plans; the workers build their own encoders
+        self.prepared: list[PreparedRun] = [  # the runs' plans, without encoders: the workers build their own
             prepare(RunRequest(e, t, request.preset, s, request.overrides, device=request.device,
-                               deterministic=request.deterministic)).without_encoder()
+                               deterministic=request.deterministic))
             for e in request.encoders for t in request.tasks for s in request.seeds
         ]
         self.jobs = [SweepJob(p.request.encoder, p.request.task, p.request.seed, p.preset) for p in self.prepared]

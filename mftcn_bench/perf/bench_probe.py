@@ -107,7 +107,7 @@ def _reset_peak_rss() -> None:
 
 
 def _probe_task(encoder_name: str, height: int, width: int, overrides: Sequence[tuple[str, Any]] = ()):
-    from mftcn_bench.run.runner import RunRequest, prepare
+    from mftcn_bench.run.plan import RunRequest, prepare
 
     return prepare(RunRequest(encoder_name, "cartpole-probe", "paper", 0,
                               (("task.dataset.height", height), ("task.dataset.width", width), *overrides)))
@@ -148,7 +148,8 @@ def measure_embedding(root: Path, encoder_name: str = "mftcn4") -> ProbeMemory:
 
     from mftcn_bench.core.home import BenchHome
     from mftcn_bench.data.dataset import MultiViewDataset
-    from mftcn_bench.run.runner import attach_feature_cache, construct_encoder
+    from mftcn_bench.run.artifacts import attach_feature_cache
+    from mftcn_bench.run.construct import construct_encoder
 
     torch.set_num_threads(1)
     dataset = MultiViewDataset(root)

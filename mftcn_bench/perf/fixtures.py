@@ -14,7 +14,7 @@ from mftcn_bench.perf.timing import Sizes
 
 def control_task(task: str, encoder: str, overrides: Sequence[tuple[str, Any]] = ()):
     """The task `task` as a run of `encoder` (paper preset, seed 0) prepares it."""
-    from mftcn_bench.run.runner import RunRequest, prepare
+    from mftcn_bench.run.plan import RunRequest, prepare
 
     return prepare(RunRequest(encoder, task, "paper", 0, tuple(overrides))).task
 

@@ -37,7 +37,7 @@ def bench_ppo_update_pixels(sizes: Sizes) -> list[BenchRow]:
 
     from mftcn_bench.core.specs import encoder_spec_from_config
     from mftcn_bench.rl.ppo import PolicyNetworks, _update, ppo_objectives
-    from mftcn_bench.run.runner import RunRequest, prepare
+    from mftcn_bench.run.plan import RunRequest, prepare
     from mftcn_bench.tasks.control import ClipTrunk
 
     one_thread()

@@ -41,7 +41,9 @@ from mftcn_bench.encoders.base import (
     uses_pixels,
 )
 from mftcn_bench.encoders.privileged import dataset_for, declared_inputs, is_reference, visible
-from mftcn_bench.run.runner import PreparedRun, RunRequest, attach_feature_cache, construct_encoder, prepare
+from mftcn_bench.run.artifacts import attach_feature_cache
+from mftcn_bench.run.construct import construct_encoder
+from mftcn_bench.run.plan import PreparedRun, RunRequest, prepare
 
 # Two paths to the same embedding may differ by TOLERANCE times the embeddings' largest magnitude (at least
 # 1): batch size changes the order of float32 sums in convolutions.
