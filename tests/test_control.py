@@ -42,8 +42,9 @@ def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encod
     test_returns = np.asarray(record.curves["test"]["return"])  # every test episode's return is kept
     assert len(test_returns) == ppo["eval_episodes"] and metrics["return_mean"] == pytest.approx(test_returns.mean())
     assert metrics["return_std"] == pytest.approx(test_returns.std(ddof=1))
-    # The suite's reward is in [0, 1] per physics step, so a return over a whole episode (the action
-    # repeat's rewards summed) lies in [0, episode_length]; a sum over too many steps or repeats breaks it.
+    # A cheap sanity bound only (the suite's reward is in [0, 1] per physics step); the exact value of a test
+    # episode's return is pinned against dm_control's own stepping by the fast test below
+    # (test_test_returns_are_dm_controls_own_rewards_summed_over_the_action_repeat).
     curve = record.curves["train"]
     assert all(0.0 <= r <= env["episode_length"] for r in [*test_returns, *curve["return"]])
     assert curve["frames"] == [float(batch_frames * (k + 1)) for k in range(batches)]  # one point per batch
@@ -66,6 +67,85 @@ def test_smoke_run_stores_returns_and_a_learning_curve(control_home, task, encod
         assert len(experts) == 1 if encoder == "mftcn5" else len(experts) <= 1
 
 
+class FixedPolicy:
+    """A deterministic stand-in for `PolicyNetworks`: `policy` writes an action that depends on the observation
+    (a fixed nonlinear feedback on the true state) and records every action it gives, and the suite instances'
+    physics state at each episode's first step (read from the environment `make_env` built)."""
+
+    def __init__(self, agent_steps: int) -> None:
+        from tensordict.nn import TensorDictModule
+
+        self.agent_steps, self.calls, self.env = agent_steps, 0, None
+        self.actions: list[torch.Tensor] = []
+        self.starts: list[list[np.ndarray]] = []
+        self.policy = TensorDictModule(self._act, in_keys=["observation"], out_keys=["action"])
+
+    def _act(self, observation: torch.Tensor) -> torch.Tensor:
+        from mftcn_bench.rl.suite_env import suite_env_of
+
+        if self.calls % self.agent_steps == 0:  # an episode's first decision: right after the reset
+            self.starts.append([e.physics.get_state().copy() for e in suite_env_of(self.env)._envs])
+        self.calls += 1
+        # true-state cartpole observation: (x_cart, sin theta, cos theta, x_dot, theta_dot)
+        x, sin, cos, x_dot, theta_dot = observation.unbind(-1)
+        action = torch.tanh(1.5 * sin - 0.7 * cos + 0.2 * theta_dot - 0.5 * x - 0.1 * x_dot).unsqueeze(-1)
+        self.actions.append(action.clone())
+        return action
+
+
+def test_test_returns_are_dm_controls_own_rewards_summed_over_the_action_repeat():
+    """A test episode's return (`evaluate_policy` on the swingup task's environments, smoke preset) equals the
+    sum, over every physics step of the episode, of the reward of dm_control's own `suite.load("cartpole",
+    "swingup")` environment stepped with `Environment.step` from the same initial physics state with the same
+    actions, each held for the spec's action repeat (8) over the spec's episode length (80 physics steps).
+    Pins the action repeat, the episode length, the reward sum and the order of the returned episodes (two
+    rounds of two environments): a reward of the repeat lost, an agent step left out of the sum, a scaled
+    action or another task's reward all change the figures."""
+    from dm_control import suite
+
+    from mftcn_bench.core import registry
+    from mftcn_bench.core.specs import resolve_config
+    from mftcn_bench.rl.ppo import evaluate_policy
+    from mftcn_bench.tasks.control import ControlTask
+
+    encoder_entry, task_entry = registry.get("encoders", "true-state"), registry.get("tasks", "swingup")
+    _, config = resolve_config(encoder_entry.spec, task_entry.spec, "smoke")
+    task = ControlTask(config["task"], seed=3)
+    # What the spec file says, written here so that the replay below does not read the harness's config.
+    repeat, physics_steps, agent_steps = 8, 80, 10
+    assert (task.env_config.action_repeat, task.env_config.episode_length) == (repeat, physics_steps)
+    encoder = encoder_entry.load()(encoder_entry.spec, image_shape=(48, 96), seed=3)
+    make_env, _ = task.env_factory(encoder)
+    fixed = FixedPolicy(agent_steps)
+
+    def recording_make_env(num_envs: int, seed: int):
+        fixed.env = make_env(num_envs, seed)
+        return fixed.env
+
+    num_envs, episodes = 2, 4
+    returns = evaluate_policy(recording_make_env, fixed, episodes, num_envs, seed=3)
+    assert returns.shape == (episodes,) and len(fixed.starts) == episodes // num_envs
+    assert len(fixed.actions) == agent_steps * episodes // num_envs
+    expected = []
+    for round_ in range(episodes // num_envs):  # the returns come round by round, environment by environment
+        for i in range(num_envs):
+            plain = suite.load("cartpole", "swingup")
+            plain.reset()
+            with plain.physics.reset_context():
+                plain.physics.set_state(fixed.starts[round_][i])
+            total = 0.0
+            for t in range(agent_steps):
+                action = fixed.actions[round_ * agent_steps + t][i].numpy().astype(np.float64)
+                for _ in range(repeat):
+                    step = plain.step(action)
+                    total += step.reward
+            expected.append(total)
+    assert returns.tolist() == pytest.approx(expected, rel=1e-5), (  # float32 rewards summed: ~1e-7
+        f"evaluate_policy returns {returns.tolist()}, dm_control's own stepping {expected}")
+    # The figures are informative: the episodes differ, and no return sits at a bound of [0, 80].
+    assert len(set(np.round(expected, 3))) == episodes and all(1.0 < r < physics_steps - 1.0 for r in expected)
+
+
 def _test_returns_by_hand(task: str, record, run_dir) -> list[float]:
     """The returns of the record's test episodes, recomputed without `evaluate_policy`: the trained networks
     from the run's last checkpoint, a fresh environment seeded as the test's (the run seed + EVAL_SEED_OFFSET,
@@ -75,10 +155,10 @@ def _test_returns_by_hand(task: str, record, run_dir) -> list[float]:
     from torchrl.envs.utils import step_mdp
 
     from mftcn_bench.rl.ppo import EVAL_SEED_OFFSET, PolicyNetworks
-    from mftcn_bench.run.runner import RunRequest, prepare
+    from mftcn_bench.run.plan import RunRequest, prepare_with_encoder
 
-    prepared = prepare(RunRequest("true-state", task, record.preset, record.seed))
-    control, encoder = prepared.task, prepared.untrained[0]  # true-state fits nothing
+    prepared, encoder = prepare_with_encoder(RunRequest("true-state", task, record.preset, record.seed))
+    control = prepared.task  # true-state fits nothing
     make_env, _ = control.env_factory(encoder)
     ppo, steps = control.ppo, control.env_config.agent_steps
     n = min(ppo.num_envs, ppo.eval_episodes)

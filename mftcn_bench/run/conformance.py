@@ -6,7 +6,8 @@ the harness relies on and a wrong implementation would get past silently: the sp
 satisfies `Encoder`, its metadata matches the spec, a short fit returns statistics, embeddings have the
 right shape, dtype and finite values, `embed_episode` and the rollout path (`streaming`, or the clip window
 over `embed`) give `embed`'s embeddings of the same clips (within `TOLERANCE`), a second instance with the
-same seed gives the same embeddings, a save / load round trip keeps them, what privileged inputs it declares
+same seed gives the same embeddings, the fit's weights do not depend on the test episodes, a fit killed half-way
+and started again ends as an uninterrupted one, a save / load round trip keeps them, what privileged inputs it declares
 (the fit and every embedding path then withhold the rest, as a run does), and (`--device`) the saved
 encoder placed on a device (`to_device`) embeds as on the CPU. One line per check.
 """
@@ -68,6 +69,20 @@ class _Failed(Exception):
     pass
 
 
+class _Killed(BaseException):
+    """Raised from a fit's progress callback to stop it as a killed process would (not an `Exception`, so a
+    plugin's own `except Exception` cannot swallow it)."""
+
+
+def _other_test_episodes(config: Mapping[str, Any], index: int) -> dict[str, np.ndarray]:
+    """The check's synthetic episodes, with every episode past the train split replaced (frames inverted,
+    state negated, actions reversed): the same train split, another test split."""
+    arrays = synthetic_collector(config, index)
+    if index >= int(config["train_episodes"]):
+        arrays = {"frames": 255 - arrays["frames"], "state": -arrays["state"], "action": arrays["action"][::-1]}
+    return arrays
+
+
 def _max_diff(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.max(np.abs(a.astype(np.float64) - b.astype(np.float64)))) if a.size else 0.0
 
@@ -99,15 +114,22 @@ class EncoderCheck:
         return construct_encoder(self.prepared.encoder_entry, self.prepared.config["encoder"],
                                  self.prepared.request.seed, self.dataset.image_shape)
 
-    def _fit(self, encoder: Encoder, folder: str) -> dict[str, float]:
+    def _fit(self, encoder: Encoder, folder: str, dataset: MultiViewDataset | None = None,
+             progress: Callable[..., None] | None = None) -> dict[str, float]:
         assert self.prepared is not None and self.dataset is not None
-        attach_feature_cache(encoder, self.dataset, self.home, show_progress=False)
+        dataset = dataset or self.dataset
+        attach_feature_cache(encoder, dataset, self.home, show_progress=False)
         if not encoder.needs_fit:
             return {}
         calls: list[tuple] = []
+
+        def record(*args: Any) -> None:
+            calls.append(args)
+            if progress is not None:
+                progress(*args)
+
         budget = fit_budget(encoder.info.name, self.prepared.config["encoder"].get("train", {}))
-        stats = encoder.fit(dataset_for(encoder, self.dataset), budget, lambda *a: calls.append(a),
-                            self.workdir / folder)
+        stats = encoder.fit(dataset_for(encoder, dataset), budget, record, self.workdir / folder)
         if not isinstance(stats, dict) or not all(isinstance(v, int | float) for v in stats.values()):
             raise _Failed(f"fit returned {type(stats).__name__} {stats!r:.80}; expected a dict of floats")
         if calls and not (isinstance(calls[-1][0], int) and isinstance(calls[-1][1], int)
@@ -225,6 +247,47 @@ class EncoderCheck:
         return _same(embed_clips_of_episode(twin, frames, state),
                      embed_clips_of_episode(self.encoder, frames, state), "a second fit with seed 0")
 
+    def train_only(self) -> str:
+        """The fit learns from the train split alone: a second fit (same seed) on a copy of the data set whose
+        test episodes are other frames and states embeds as the first. (A fit may read test episodes for a
+        held-out diagnostic, as mfTCN's does, but its weights must not depend on them.)"""
+        assert self.encoder is not None and self.dataset is not None
+        if not self.encoder.needs_fit:
+            return "needs_fit is False: nothing trained"
+        config = {**self.dataset.config, "name": "conformance-other-test"}
+        other = ensure_dataset(self.home.datasets, config, _other_test_episodes, show_progress=False)
+        twin = self._new()
+        self._fit(twin, "fit-other-test", other)
+        frames, state = self._episodes()[0]
+        return _same(embed_clips_of_episode(twin, frames, state),
+                     embed_clips_of_episode(self.encoder, frames, state), "test episodes replaced")
+
+    def resume(self) -> str:
+        """A fit killed half-way and started again in its folder (a fresh instance, as after a crash) ends
+        where an uninterrupted fit does."""
+        assert self.encoder is not None and self.prepared is not None
+        if not self.encoder.needs_fit:
+            return "needs_fit is False: nothing trained"
+        total = fit_budget(self.name, self.prepared.config["encoder"].get("train", {})).steps
+
+        def kill(step: int, *_: Any) -> None:
+            if step >= max(1, total // 2):
+                raise _Killed
+
+        try:
+            self._fit(self._new(), "fit-killed", progress=kill)
+        except _Killed:
+            pass
+        steps: list[int] = []
+        resumed = self._new()
+        self._fit(resumed, "fit-killed", progress=lambda step, *_: steps.append(step))
+        frames, state = self._episodes()[0]
+        line = _same(embed_clips_of_episode(resumed, frames, state),
+                     embed_clips_of_episode(self.encoder, frames, state), "killed at step "
+                     f"{max(1, total // 2)} of {total} and restarted, vs uninterrupted")
+        start = f"went on from step {steps[0]}" if steps and steps[0] > 1 else "started again from step 1"
+        return f"{line}; the restarted fit {start}"
+
     def save_load(self) -> str:
         assert self.encoder is not None
         path = self.workdir / "saved" / "model.pt"
@@ -289,7 +352,8 @@ class EncoderCheck:
             ("spec", self.spec), ("construct", self.construct), ("privileged", self.privileged),
             ("metadata", self.metadata), ("fit", self.fit),
             ("embed", self.embed), ("embed_episode", self.embed_episode), ("streaming", self.streaming),
-            ("determinism", self.determinism), ("save-load", self.save_load), ("device", self.device),
+            ("determinism", self.determinism), ("train-only", self.train_only), ("resume", self.resume),
+            ("save-load", self.save_load), ("device", self.device),
             ("shapes", self.shapes)]
         blocked = None
         for name, check in checks:
