@@ -116,7 +116,7 @@ def test_latex_format_escapes_and_uses_pm(tmp_path):
 
 def test_every_table_renders_from_an_empty_store(tmp_path):
     text = report(ResultStore(tmp_path / "r.sqlite"), list(TABLES))
-    assert text.count("### ") == len(TABLES) == 10
+    assert text.count("### ") == len(TABLES) == 11
     assert "- (0.0198)" in text and "- (811.10)" in text and "- (8.9)" in text
 
 
