@@ -15,11 +15,10 @@ from dataclasses import replace
 from mftcn_bench.perf.timing import BenchRow, Sizes, Target, alternate, one_thread, timed
 
 
-def _batch(task, encoder, nets, agent_steps: int, num_envs: int):
+def _batch(make_env, nets, agent_steps: int, num_envs: int):
     """One collected batch of `num_envs` x `agent_steps` steps of `nets`'s policy (untrained)."""
     from torchrl.collectors import Collector
 
-    make_env, _ = task.env_factory(encoder)
     collector = Collector(make_env(num_envs, 0), nets.policy, frames_per_batch=num_envs * agent_steps,
                           total_frames=num_envs * agent_steps, reset_at_each_iter=True,
                           auto_register_policy_transforms=False)
@@ -66,7 +65,7 @@ def bench_ppo_update_pixels(sizes: Sizes) -> list[BenchRow]:
                                  critic_coeff=config.critic_coeff, loss_critic_type="l2", normalize_advantage=True)
     reference_optimizer = torch.optim.Adam(reference_loss.parameters(), lr=config.lr)
 
-    batch = _batch(task, encoder, nets, agent_steps, num_envs)
+    batch = _batch(make_env, nets, agent_steps, num_envs)
     minibatches = float(math.ceil(batch.numel() / config.minibatch_size))
     rates = alternate({
         "harness": timed(lambda: _update(batch, nets.common, loss, advantage, optimizer, config), minibatches),

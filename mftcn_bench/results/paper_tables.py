@@ -218,42 +218,34 @@ SWINGUP_LIMITS = PaperTable(
     other_runs=False,
 )
 
-# --- Not in the paper: what limits PPO on an embedding (swing-up at 160x160) -------------------------------
-SWINGUP_160_LIMITS = PaperTable(
-    name="swingup-160-limits",
-    title="What limits PPO on an embedding: cartpole swing-up at 160x160 (fixed camera), by policy input",
-    label_headers=("Input to PPO",),
-    columns=_RETURN_COLUMNS,
-    rows=tuple(PaperRow((label,), encoder, task, paper=paper) for label, encoder, task, paper in (
-        ("True state", "true-state", "swingup-160", (861.41, 3.46)),
-        ("mfTCN1 [e_t, e_t - e_t-1]", "mftcn1", "swingup-160-difference", None),
-        ("mfTCN1 e_t", "mftcn1", "swingup-160", (759.33, 77.77)),
-        ("mfTCN5 e_t", "mftcn5", "swingup-160", (787.47, 67.80)),
-    )),
-    note="The same PPO budget on every row (the preset's); the [e_t, e_t - e_t-1] row shares the e_t row's "
-         "data set and encoder fit (same preset and seed), so the rows differ only in the policy's input. "
-         "Other encoders' runs are in the swing-up table.",
-    decimals=2,
-    other_runs=False,
-)
+# --- Not in the paper: what limits PPO on an embedding, by the policy's input alone ------------------------
+def _policy_input_table(name: str, title: str, rows: tuple, note: str) -> PaperTable:
+    """A table of rows (label, encoder, task, paper figure) that differ only in what the policy sees."""
+    return PaperTable(name=name, title=title, label_headers=("Input to PPO",), columns=_RETURN_COLUMNS,
+                      rows=tuple(PaperRow((label,), encoder, task, paper=paper)
+                                 for label, encoder, task, paper in rows),
+                      note=note, decimals=2, other_runs=False)
 
-# --- Not in the paper: what limits PPO on an embedding (cheetah) ------------------------------------------
-CHEETAH_LIMITS = PaperTable(
-    name="cheetah-limits",
-    title="What limits PPO on an embedding: cheetah, by policy input",
-    label_headers=("Input to PPO",),
-    columns=_RETURN_COLUMNS,
-    rows=tuple(PaperRow((label,), encoder, task, paper=paper) for label, encoder, task, paper in (
-        ("True state", "true-state", "cheetah", (390.16, 44.85)),
-        ("mfTCN5 [e_t, e_t - e_t-1]", "mftcn5", "cheetah-difference", None),
-        ("mfTCN5 e_t", "mftcn5", "cheetah", (360.50, 76.52)),
-    )),
-    note="The same PPO budget on every row (3 M frames, at both presets); the [e_t, e_t - e_t-1] row shares the "
-         "e_t row's expert, demonstrations and encoder fit (same preset and seed), so the rows differ only in "
-         "the policy's input. Other encoders' cheetah runs are in the cheetah table.",
-    decimals=2,
-    other_runs=False,
-)
+
+SWINGUP_160_LIMITS = _policy_input_table(
+    "swingup-160-limits",
+    "What limits PPO on an embedding: cartpole swing-up at 160x160 (fixed camera), by policy input",
+    (("True state", "true-state", "swingup-160", (861.41, 3.46)),
+     ("mfTCN1 [e_t, e_t - e_t-1]", "mftcn1", "swingup-160-difference", None),
+     ("mfTCN1 e_t", "mftcn1", "swingup-160", (759.33, 77.77)),
+     ("mfTCN5 e_t", "mftcn5", "swingup-160", (787.47, 67.80))),
+    "The same PPO budget on every row (the preset's); the [e_t, e_t - e_t-1] row shares the e_t row's data set "
+    "and encoder fit (same preset and seed), so the rows differ only in the policy's input. Other encoders' runs "
+    "are in the swing-up table.")
+CHEETAH_LIMITS = _policy_input_table(
+    "cheetah-limits",
+    "What limits PPO on an embedding: cheetah, by policy input",
+    (("True state", "true-state", "cheetah", (390.16, 44.85)),
+     ("mfTCN5 [e_t, e_t - e_t-1]", "mftcn5", "cheetah-difference", None),
+     ("mfTCN5 e_t", "mftcn5", "cheetah", (360.50, 76.52))),
+    "The same PPO budget on every row (3 M frames, at both presets); the [e_t, e_t - e_t-1] row shares the e_t "
+    "row's expert, demonstrations and encoder fit (same preset and seed), so the rows differ only in the "
+    "policy's input. Other encoders' cheetah runs are in the cheetah table.")
 
 # --- Not in the paper: the encoder's stream of frames at the physics rate and at the agent rate (issue 34) --
 _PHYSICS, _AGENT = "physics rate (0.01 s)", "agent rate (0.08 s)"
