@@ -106,6 +106,40 @@ def test_extends_merges_tables_and_a_dataset_reference_is_its_file():
         load_spec_tree("tasks", "loop-a", read, "x")
 
 
+def test_same_as_is_the_named_table_with_this_tables_keys_over_it():
+    from mftcn_bench.core.specs import load_spec_tree
+
+    files = {("tasks", "control"): '[ppo]\nlr = 1\nframes = 10\n[ppo.net]\nhidden = 4\ndepth = 2\n',
+             ("tasks", "expert"): 'extends = "_t"\n[expert_ppo]\nsame_as = "control.ppo"\nframes = 3\n'
+                                  '[expert_ppo.net]\ndepth = 1\n',
+             ("tasks", "_t"): '[ppo]\nsame_as = "expert_ppo"\nframes = 7\n',
+             ("tasks", "self-loop"): '[a]\nsame_as = "b"\n[b]\nsame_as = "a"\n',
+             ("tasks", "spec-loop"): '[a]\nsame_as = "spec-loop.a"\n',
+             ("tasks", "missing"): '[a]\nsame_as = "control.nothing"\n',
+             ("tasks", "bad"): '[a]\nsame_as = "a.b.c"\n'}
+
+    def read(folder, name):
+        return files[(folder, name)]
+
+    expert = load_spec_tree("tasks", "expert", read, "x")
+    # another spec's table, nested tables merged; a sibling's through a template, itself a reference
+    assert expert["expert_ppo"] == {"lr": 1, "frames": 3, "net": {"hidden": 4, "depth": 1}}
+    assert expert["ppo"] == {"lr": 1, "frames": 7, "net": {"hidden": 4, "depth": 1}}
+    for name, message in (("self-loop", "loops"), ("spec-loop", "loops"), ("bad", "must be"),
+                          ("missing", "names no table of spec 'control'; its tables: \\['ppo'\\]")):
+        with pytest.raises(SpecError, match=message):
+            load_spec_tree("tasks", name, read, "x")
+
+
+def test_the_experts_ppo_settings_are_the_control_tasks_by_reference():
+    """imitate-swingup's expert is swingup's tuned PPO with 1 M frames; cheetah's policy has its expert's
+    settings with the paper's 100 test episodes (spec files say so with `same_as`, not with copies)."""
+    tables = {name: registry.get("tasks", name).spec.tables for name in ("swingup", "imitate-swingup", "cheetah")}
+    assert tables["imitate-swingup"]["expert_ppo"] == {**tables["swingup"]["ppo"], "frames": 1_000_000,
+                                                       "eval_episodes": 20}
+    assert tables["cheetah"]["ppo"] == {**tables["cheetah"]["expert_ppo"], "eval_episodes": 100}
+
+
 def test_tasks_share_the_named_dataset():
     from mftcn_bench.core import registry
 

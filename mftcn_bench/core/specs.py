@@ -129,10 +129,18 @@ def merge_tables(base: Mapping[str, Any], child: Mapping[str, Any]) -> dict[str,
 
 def load_spec_tree(kind: str, name: str, read: Callable[[str, str], str], origin: str,
                    seen: tuple[str, ...] = ()) -> dict[str, Any]:
-    """A spec file as data, with its template and dataset resolved: `extends = "<spec>"` merges this file
-    over that spec of the same kind (recursively; `_name` files are templates, never variants), and in a
-    task spec `dataset = "<name>"` stands for the table of `specs/datasets/<name>.toml`, over which this
-    file's `[dataset.*]` keys of an extending spec then merge. `read(folder, name)` returns a file's text."""
+    """A spec file as data, with its templates and dataset resolved: `extends = "<spec>"` merges this file
+    over that spec of the same kind (recursively; `_name` files are templates, never variants); a table's
+    `same_as = "<spec>.<table>"` (or `"<table>"` of this spec) stands for that table with this table's other
+    keys over it (imitate-swingup's expert is swingup's [ppo] with another budget); and in a task spec
+    `dataset = "<name>"` stands for the table of `specs/datasets/<name>.toml`, over which this file's
+    `[dataset.*]` keys of an extending spec then merge. `read(folder, name)` returns a file's text."""
+    data = _load_extended(kind, name, read, origin, seen)
+    return {key: _resolve_same_as(kind, name, key, data, read, origin, (*seen, name)) for key in data}
+
+
+def _load_extended(kind: str, name: str, read: Callable[[str, str], str], origin: str,
+                   seen: tuple[str, ...]) -> dict[str, Any]:
     if name in seen:
         raise SpecError(f"spec {origin}/{kind}/{name}.toml: `extends` loops ({' -> '.join((*seen, name))})")
     data = parse_toml(read(kind, name), f"{origin}/{kind}/{name}.toml")
@@ -144,7 +152,31 @@ def load_spec_tree(kind: str, name: str, read: Callable[[str, str], str], origin
         return data
     if not isinstance(parent, str):
         raise SpecError(f"spec {origin}/{kind}/{name}.toml: extends must be a spec name, got {parent!r}")
-    return merge_tables(load_spec_tree(kind, parent, read, origin, (*seen, name)), data)
+    return merge_tables(_load_extended(kind, parent, read, origin, (*seen, name)), data)
+
+
+def _resolve_same_as(kind: str, name: str, key: str, data: Mapping[str, Any], read: Callable[[str, str], str],
+                     origin: str, seen: tuple[str, ...], chain: tuple[str, ...] = ()) -> Any:
+    """Table `key` of spec `name` (`data`, extends resolved) with its `same_as` reference replaced by the
+    table it names, this table's other keys over it; any other value as it is. `seen`: the specs being
+    loaded, `chain`: this spec's tables being resolved (both to refuse a loop)."""
+    table = data[key]
+    if not isinstance(table, Mapping) or "same_as" not in table:
+        return table
+    where = f"spec {origin}/{kind}/{name}.toml: [{key}] same_as"
+    reference = table["same_as"]
+    if not isinstance(reference, str) or not reference or reference.count(".") > 1:
+        raise SpecError(f"{where} must be \"<spec>.<table>\" or \"<table>\" of this spec, got {reference!r}")
+    spec, _, other = reference.rpartition(".")
+    if (spec in seen) if spec else (other in (*chain, key)):
+        raise SpecError(f"{where} = {reference!r} loops ({' -> '.join((*(seen if spec else chain), key, reference))})")
+    source = load_spec_tree(kind, spec, read, origin, seen) if spec else data
+    if not isinstance(source.get(other), Mapping):
+        tables = sorted(k for k, v in source.items() if isinstance(v, Mapping))
+        raise SpecError(f"{where} = {reference!r} names no table of spec {spec or name!r}; its tables: {tables}")
+    resolved = (source[other] if spec
+                else _resolve_same_as(kind, name, other, data, read, origin, seen, (*chain, key)))
+    return merge_tables(resolved, {k: v for k, v in table.items() if k != "same_as"})
 
 
 def flatten(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
