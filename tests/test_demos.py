@@ -33,7 +33,7 @@ def test_demonstrations_film_a_frame_every_action_repeat_steps_with_the_state_an
     every, repeat = int(data["action_repeat"]), task.env_config.action_repeat
     assert every == repeat == 4 and task.data_frame_every() == 4  # the agent rate
     expert = Alternating(6)
-    episode = ExpertDemoCollector(None, task.env_config, task.expert_ppo, policy=expert)(data, 3)
+    episode = ExpertDemoCollector(None, task.env_config, task.expert.ppo, policy=expert)(data, 3)
     assert episode["frames"].shape == (2, 6, 16, 16, 3) and expert.decisions == 6
 
     # The same episode stepped here: the recorded states are every 4th physics step's, before its action.

@@ -38,7 +38,8 @@ def test_expert_train_pins_a_file_that_fresh_homes_record_from_without_training(
     trainer = tmp_path / "trainer"
     assert main(["expert", "train", "--task", "cheetah", "--preset", "smoke", "--home", str(trainer)]) == 0
     out = capsys.readouterr().out
-    env, ppo, seed = cheetah_task().expert_setup
+    expert = cheetah_task().expert
+    env, ppo, seed = expert.env, expert.ppo, expert.seed
     path = experts.pinned_path(env, ppo, seed)
     assert path.parent == pinned and f"pinned {path}" in out and "new key" in out
     sidecar = json.loads(path.with_suffix(".json").read_text())
@@ -59,7 +60,7 @@ def test_expert_train_pins_a_file_that_fresh_homes_record_from_without_training(
 
 def test_another_expert_file_gives_the_data_another_key_and_a_damaged_one_is_refused(tmp_path, pinned):
     task = cheetah_task()
-    env, ppo, seed = task.expert_setup
+    env, ppo, seed = task.expert.env, task.expert.ppo, task.expert.seed
     unpinned = dict(task.dataset_config)
     assert unpinned["expert"] == experts.expert_key(env, ppo, seed)  # trained in the home: the training key
     trained = experts.train_expert(tmp_path / "home", env, ppo, seed)

@@ -50,8 +50,8 @@ def stand_in_expert(monkeypatch, tmp_path):
         trained.append(path)
         return path
 
-    monkeypatch.setattr("mftcn_bench.tasks.imitation.ensure_expert", ensure_expert)
-    monkeypatch.setattr("mftcn_bench.tasks.imitation.ExpertPolicy", Balancer)
+    monkeypatch.setattr("mftcn_bench.rl.expert.ensure_expert", ensure_expert)
+    monkeypatch.setattr("mftcn_bench.rl.expert.ExpertPolicy", Balancer)
     monkeypatch.setattr("mftcn_bench.tasks.imitation.collect_episode", synthetic_collector)
     return trained
 
@@ -170,7 +170,7 @@ def test_the_demonstrations_are_the_streams_the_clone_sees_online(stand_in_exper
     assert encoder is not None  # the task names its frame size: the plan constructed the encoder
     task = prepared.task
     expert = Balancer()
-    episode = ExpertDemoCollector(None, task.expert_env, task.expert_ppo, policy=expert)(task.demos_config, 0)
+    episode = ExpertDemoCollector(None, task.expert.env, task.expert.ppo, policy=expert)(task.demos_config, 0)
     frames, state, action = episode["frames"][0], episode["state"], episode["action"]
     offline = embed_episode(encoder, frames, state)
 
@@ -198,7 +198,7 @@ def test_noise_drives_the_recording_and_the_expert_labels_it():
                                   (("task.demos.episode_length", 40), ("task.demos.action_noise", noise)))).task
         config = task.demos_config
         assert ("action_noise" in config) == (noise > 0)
-        return ExpertDemoCollector(None, task.expert_env, task.expert_ppo, policy=Balancer())(config, 0)
+        return ExpertDemoCollector(None, task.expert.env, task.expert.ppo, policy=Balancer())(config, 0)
 
     calm, pushed = episode(0.0), episode(0.5)
     np.testing.assert_array_equal(calm["state"][0], pushed["state"][0])  # the same initial state

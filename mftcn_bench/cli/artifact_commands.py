@@ -52,7 +52,7 @@ def cmd_expert_train(args: argparse.Namespace) -> None:
     if not isinstance(task, RecordsExpert):
         raise BenchError(f"task {args.task!r} is not recorded from an expert; tasks that are: cheetah, "
                          f"cheetah-difference, imitate-swingup, imitate-cheetah")
-    env, ppo, seed = task.expert_setup
+    env, ppo, seed = task.expert.env, task.expert.ppo, task.expert.seed
     target = pinned_path(env, ppo, seed, args.out)
     if target.exists() and not args.force:
         raise BenchError(f"{target} is pinned already; --force replaces it (every data set recorded from it "

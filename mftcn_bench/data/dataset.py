@@ -24,6 +24,7 @@ import numpy as np
 from mftcn_bench.core import identity
 from mftcn_bench.core.errors import DataError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock, resume_folder
+from mftcn_bench.core.progress import progress_bar
 from mftcn_bench.core.provenance import content_hash, versions
 from mftcn_bench.data.chunks import read_chunk, write_chunk
 from mftcn_bench.sim.rendering import gl_renderer
@@ -173,24 +174,20 @@ def ensure_dataset(
         done = resume_folder(root)
         progress_path = root / "progress.json"
         plan = _episode_plan(config)
-        from tqdm import tqdm
-
-        bar = tqdm(total=sum(int(config["episode_length"]) for _ in plan), unit="frame",
-                   desc=f"collect {config['name']}", disable=not show_progress, leave=False)
-        chunks = []
-        for index, split in plan:
-            name = f"ep{index:05d}.npz"
-            entry = done.get(name)
-            if entry is None or not (root / name).exists():
-                arrays = collector(config, index)
-                sha = write_chunk(root / name, arrays)
-                entry = {"file": name, "episode": index, "split": split,
-                         "length": int(arrays["frames"].shape[1]), "sha256": sha}
-                done[name] = entry
-                atomic_write_bytes(progress_path, json.dumps(list(done.values()), indent=1).encode())
-            chunks.append(entry)
-            bar.update(int(config["episode_length"]))
-        bar.close()
+        total, chunks = len(plan) * int(config["episode_length"]), []
+        with progress_bar(f"collect {config['name']}", "frame", show_progress) as report:
+            for index, split in plan:
+                name = f"ep{index:05d}.npz"
+                entry = done.get(name)
+                if entry is None or not (root / name).exists():
+                    arrays = collector(config, index)
+                    sha = write_chunk(root / name, arrays)
+                    entry = {"file": name, "episode": index, "split": split,
+                             "length": int(arrays["frames"].shape[1]), "sha256": sha}
+                    done[name] = entry
+                    atomic_write_bytes(progress_path, json.dumps(list(done.values()), indent=1).encode())
+                chunks.append(entry)
+                report(len(chunks) * int(config["episode_length"]), total, {})
         manifest = {"id": ident, "format": FORMAT_VERSION, "config": dict(config), "seed": config["seed"],
                     "versions": versions(), "renderer": gl_renderer(), "chunks": chunks}
         atomic_write_bytes(root / "manifest.json", json.dumps(manifest, indent=1, sort_keys=True).encode())

@@ -8,7 +8,7 @@ tasks, then embeds clips. Frames are uint8 RGB; a clip is the frames t-(n-1)s, .
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 import numpy as np
 
 from mftcn_bench.core.errors import BenchError, SpecError
+from mftcn_bench.core.progress import Progress
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.privileged import Withheld, visible
@@ -74,8 +75,8 @@ def fit_budget(encoder: str, train: Mapping[str, Any]) -> FitBudget:
 # A fit's learning curve in its workdir: {"step": [...], "<measure>": [...], ...}.
 FIT_CURVE = "fit_curve.json"
 
-# progress(step, total_steps, {"loss": ...}) is called as training goes.
-ProgressFn = Callable[[int, int, dict[str, float]], None]
+# progress(step, total_steps, {"loss": ...}) is called as training goes (the harness's one progress type).
+ProgressFn = Progress
 
 
 @runtime_checkable

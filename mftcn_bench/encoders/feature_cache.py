@@ -34,6 +34,7 @@ from mftcn_bench.core import identity
 from mftcn_bench.core.device import CPU, Placement
 from mftcn_bench.core.errors import DataError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock, resume_folder
+from mftcn_bench.core.progress import progress_bar
 from mftcn_bench.core.provenance import file_sha256
 from mftcn_bench.data.dataset import MultiViewDataset
 
@@ -133,32 +134,29 @@ def ensure_feature_cache(features_dir: Path, dataset: MultiViewDataset, base: nn
         done = resume_folder(root)
         progress_path = root / "progress.json"
         episodes = sorted(i for split in ("train", "val", "test") for i in dataset.episodes(split))
-        from tqdm import tqdm
-
         total = sum(dataset.episode_length(i) for i in episodes) * len(dataset.cameras)
-        bar = tqdm(total=total, unit="frame", desc=f"features {dataset.config['name']}",
-                   disable=not show_progress, leave=False)
-        began, shape, computed_s = time.monotonic(), None, 0.0
-        for index in episodes:
-            name = f"ep{index:05d}.npy"
-            entry = done.get(name)
-            if entry is None or not (root / name).exists():
-                episode = dataset.load(index)
-                start = time.monotonic()
-                stacked = np.stack([base_features(base, view, batch_size, placement.torch_device)
-                                    for view in episode.frames])
-                computed_s += time.monotonic() - start
-                buffer = _npy_bytes(stacked)
-                atomic_write_bytes(root / name, buffer)
-                entry = {"file": name, "episode": index, "length": int(stacked.shape[1]),
-                         "sha256": hashlib.sha256(buffer).hexdigest(), "bytes": len(buffer),
-                         "frames_sha256": [frames_digest(view) for view in episode.frames],
-                         "feature_shape": list(stacked.shape[2:])}
-                done[name] = entry
-                atomic_write_bytes(progress_path, json.dumps(list(done.values()), indent=1).encode())
-            shape = entry["feature_shape"]
-            bar.update(entry["length"] * len(dataset.cameras))
-        bar.close()
+        began, shape, computed_s, embedded = time.monotonic(), None, 0.0, 0
+        with progress_bar(f"features {dataset.config['name']}", "frame", show_progress) as report:
+            for index in episodes:
+                name = f"ep{index:05d}.npy"
+                entry = done.get(name)
+                if entry is None or not (root / name).exists():
+                    episode = dataset.load(index)
+                    start = time.monotonic()
+                    stacked = np.stack([base_features(base, view, batch_size, placement.torch_device)
+                                        for view in episode.frames])
+                    computed_s += time.monotonic() - start
+                    buffer = _npy_bytes(stacked)
+                    atomic_write_bytes(root / name, buffer)
+                    entry = {"file": name, "episode": index, "length": int(stacked.shape[1]),
+                             "sha256": hashlib.sha256(buffer).hexdigest(), "bytes": len(buffer),
+                             "frames_sha256": [frames_digest(view) for view in episode.frames],
+                             "feature_shape": list(stacked.shape[2:])}
+                    done[name] = entry
+                    atomic_write_bytes(progress_path, json.dumps(list(done.values()), indent=1).encode())
+                shape = entry["feature_shape"]
+                embedded += entry["length"] * len(dataset.cameras)
+                report(embedded, total, {})
         ordered = [done[f"ep{i:05d}.npy"] for i in episodes]
         manifest = {"id": ident, "format": FORMAT_VERSION, "dataset": dataset.fingerprint,
                     "dataset_path": str(dataset.root), "base": dict(base_identity), "feature_shape": shape,

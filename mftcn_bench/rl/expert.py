@@ -9,7 +9,8 @@ refactor keeps the file). A pinned expert is loaded, never trained, and a data s
 the file's checksum, so every machine records its demonstrations from the same weights. An expert config
 with no pinned file (a smoke preset's toy expert, an override) is trained in the home's `experts/<key>/`
 (key: that config and the code), under a lock so concurrent runs train it once, resumed after a kill.
-`pin_expert` (`mftcn-bench expert train`) makes a pinned file on purpose.
+`pin_expert` (`mftcn-bench expert train`) makes a pinned file on purpose. `ExpertSetup` is the one way the
+tasks recorded from an expert (cheetah's, imitation's) name, find and run theirs.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from __future__ import annotations
 import importlib.resources
 import io
 import json
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from torchrl.envs import TransformedEnv
 from mftcn_bench.core import identity
 from mftcn_bench.core.errors import TrainingError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
+from mftcn_bench.core.progress import Progress, progress_bar
 from mftcn_bench.core.provenance import content_hash, file_sha256, versions
 from mftcn_bench.rl.observation import observed_env
 from mftcn_bench.rl.observers import StateObserver
@@ -99,8 +101,12 @@ def state_env_factory(env_config: SuiteConfig):
     return make_env
 
 
+def _no_progress(done: int, total: int, stats: dict[str, float]) -> None:
+    pass
+
+
 def ensure_expert(experts_dir: Path, env_config: SuiteConfig, ppo: PPOConfig, seed: int,
-                  progress=lambda *args: None) -> Path:
+                  progress: Progress = _no_progress) -> Path:
     """Path of the expert's weights: the pinned file when the project pins this config, else the home's
     `expert.pt`, training it first if needed."""
     pinned = pinned_expert(env_config, ppo, seed)
@@ -108,7 +114,7 @@ def ensure_expert(experts_dir: Path, env_config: SuiteConfig, ppo: PPOConfig, se
 
 
 def train_expert(experts_dir: Path, env_config: SuiteConfig, ppo: PPOConfig, seed: int,
-                 progress=lambda *args: None) -> Path:
+                 progress: Progress = _no_progress) -> Path:
     """Path of the home's trained expert (`expert.pt`, its summary beside it), training it first if needed."""
     workdir = experts_dir / f"{env_config.domain}-{env_config.task}-{expert_key(env_config, ppo, seed)}"
     path = workdir / "expert.pt"
@@ -171,3 +177,32 @@ class ExpertPolicy:
         td = TensorDict({"observation": torch.from_numpy(observation)}, batch_size=[1])
         with self._mode:
             return self._nets.policy(td).get("action")[0].double().numpy()
+
+
+@dataclass(frozen=True)
+class ExpertSetup:
+    """What trains a task's expert and keys it: its environment as the state sees it, PPO settings, seed."""
+
+    env: SuiteConfig
+    ppo: PPOConfig
+    seed: int
+
+    @classmethod
+    def of_task(cls, env: SuiteConfig, ppo: PPOConfig, seed: int) -> ExpertSetup:
+        """The expert of a task whose policy acts in `env`. The expert sees the state alone: how the task's
+        policy reads the embedding (its difference) is not the expert's, so a variant that changes only that
+        (cheetah-difference) shares the expert, its data and the fits."""
+        return cls(replace(env, embedding_difference=False), ppo, seed)
+
+    def identity(self) -> str:
+        """What a data set recorded from this expert names (`expert_identity`)."""
+        return expert_identity(self.env, self.ppo, self.seed)
+
+    def ensure(self, experts_dir: Path, show_progress: bool = True) -> Path:
+        """The expert's weights: the pinned file, or trained in `experts_dir` first (with a progress bar)."""
+        with progress_bar(f"expert {self.env.domain}-{self.env.task}", "batch", show_progress) as progress:
+            return ensure_expert(experts_dir, self.env, self.ppo, self.seed, progress)
+
+    def policy(self, path: Path) -> ExpertPolicy:
+        """The expert stored at `path` as a policy of single states."""
+        return ExpertPolicy(path, self.env, self.ppo)

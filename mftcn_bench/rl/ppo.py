@@ -37,6 +37,7 @@ from torchrl.objectives.value import GAE
 from mftcn_bench.core.device import cuda_rng_state, restore_cuda_rng_state
 from mftcn_bench.core.errors import SpecError, TrainingError
 from mftcn_bench.core.fileio import atomic_write_bytes
+from mftcn_bench.core.progress import Progress
 from mftcn_bench.rl.suite_env import EnvFactory, suite_env_of
 
 DISTRIBUTIONS = {"tanh_normal": TanhNormal, "normal": IndependentNormal}
@@ -86,9 +87,6 @@ class TrainState:
     # cleanrl's per-batch diagnostics (`DIAGNOSTICS`): a policy stuck in an optimum keeps a low KL and clip
     # fraction with a critic that explains its returns; one that lacks information has a critic that cannot.
     diagnostics: dict[str, list[float]] = field(default_factory=dict)
-
-
-Progress = Callable[[int, int, dict[str, float]], None]
 
 
 

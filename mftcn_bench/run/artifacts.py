@@ -16,6 +16,7 @@ from mftcn_bench.core.device import CPU, DevicePlaced, Placement
 from mftcn_bench.core.errors import BenchError
 from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock
 from mftcn_bench.core.home import BenchHome
+from mftcn_bench.core.progress import progress_bar
 from mftcn_bench.core.specs import EncoderSpec, encoder_spec_from_config
 from mftcn_bench.data.dataset import MultiViewDataset, ensure_dataset
 from mftcn_bench.encoders.base import Encoder, FeatureCacheUser, fit_budget
@@ -35,20 +36,6 @@ def prepare_dataset(prepared: PreparedRun, home: BenchHome, show_progress: bool 
         prepared.task.prepare_artifacts(home, show_progress)
     return ensure_dataset(home.datasets, prepared.task.dataset_config, prepared.task.collector,
                           show_progress=show_progress)
-
-
-def _progress_bar(name: str, enabled: bool):
-    from tqdm import tqdm
-
-    bar = tqdm(desc=f"fit {name}", unit="step", disable=not enabled, leave=False)
-
-    def report(step: int, total: int, stats: dict[str, float]) -> None:
-        bar.total = total
-        bar.n = step
-        bar.set_postfix({k: f"{v:.4f}" for k, v in stats.items()}, refresh=False)
-        bar.refresh()
-
-    return bar, report
 
 
 def encoder_workdir(prepared: PreparedRun, dataset: MultiViewDataset, home: BenchHome,
@@ -143,15 +130,13 @@ def _fit_or_load(encoder: Encoder, spec: EncoderSpec, dataset: MultiViewDataset,
         stale.unlink()
     before_fit()
     budget = fit_budget(spec.name, spec.train)
-    bar, report = _progress_bar(spec.name, show_progress)
     try:
-        fit_stats = encoder.fit(dataset_for(encoder, dataset), budget, report, workdir)
+        with progress_bar(f"fit {spec.name}", "step", show_progress) as report:
+            fit_stats = encoder.fit(dataset_for(encoder, dataset), budget, report, workdir)
     except BaseException:
         if not any(workdir.iterdir()):  # nothing to resume from: leave no empty folder behind
             workdir.rmdir()
         raise
-    finally:
-        bar.close()
     encoder.save(model_path)
     atomic_write_bytes(fit_file, json.dumps(fit_stats, indent=1).encode())
     (workdir / "train_checkpoint.pt").unlink(missing_ok=True)

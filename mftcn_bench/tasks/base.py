@@ -12,8 +12,7 @@ from mftcn_bench.encoders.base import Encoder
 
 if TYPE_CHECKING:
     from mftcn_bench.core.home import BenchHome
-    from mftcn_bench.rl.ppo import PPOConfig
-    from mftcn_bench.rl.suite_env import SuiteConfig
+    from mftcn_bench.rl.expert import ExpertSetup
 
 # Learning curves: name -> columns of equal length, e.g.
 # {"train": {"frames": [...], "wall_s": [...], "return": [...]}}.
@@ -83,8 +82,7 @@ class RecordsExpert(Protocol):
     """A task whose data are a true-state expert's demonstrations: what trains that expert (its environment
     as the state sees it, its PPO settings, its seed), for `mftcn-bench expert train`."""
 
-    @property
-    def expert_setup(self) -> tuple[SuiteConfig, PPOConfig, int]: ...
+    expert: ExpertSetup
 
 
 @runtime_checkable

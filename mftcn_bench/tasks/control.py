@@ -21,7 +21,7 @@ control tasks it is no `tasks.base.OnlineTask`.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,12 +33,13 @@ from torchrl.envs import TransformedEnv
 
 from mftcn_bench.core.errors import SpecError
 from mftcn_bench.core.home import BenchHome
+from mftcn_bench.core.progress import progress_bar
 from mftcn_bench.core.specs import parse_table
 from mftcn_bench.data.cartpole import TARGETS, collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder, trains_with_policy, uses_pixels
 from mftcn_bench.rl.demos import ExpertDemoCollector
-from mftcn_bench.rl.expert import ensure_expert, expert_identity
+from mftcn_bench.rl.expert import ExpertSetup
 from mftcn_bench.rl.observation import PixelClip, Readout, observed_env
 from mftcn_bench.rl.observers import make_observer
 from mftcn_bench.rl.ppo import PPOConfig, evaluate_policy, train_ppo
@@ -128,20 +129,9 @@ class PPOTask:
 
     def _train_and_test(self, encoder: Encoder, workdir: Path, readout: Readout | None = None) -> TaskResult:
         """PPO on the embedding (mapped by `readout` when given), then the test episodes."""
-        from tqdm import tqdm
-
         make_env, trunk = self.env_factory(encoder, readout)
-        bar = tqdm(desc=f"ppo {self.config['name']}", unit="batch", disable=None if self._bars else True, leave=False)
-
-        def progress(batch: int, total: int, stats: dict[str, float]) -> None:
-            bar.total, bar.n = total, batch
-            bar.set_postfix({k: f"{v:.3g}" for k, v in stats.items()}, refresh=False)
-            bar.refresh()
-
-        try:
+        with progress_bar(f"ppo {self.config['name']}", "batch", self._bars) as progress:
             nets, state = train_ppo(make_env, self.ppo, self.seed, workdir, progress, trunk, self.device)
-        finally:
-            bar.close()
         returns = evaluate_policy(make_env, nets, self.ppo.eval_episodes,
                                   min(self.ppo.num_envs, self.ppo.eval_episodes), self.seed, self.device)
         curves = {"train": {"frames": state.curve_frames, "wall_s": state.curve_wall_s,
@@ -232,42 +222,20 @@ class ExpertDemoControlTask(ControlTask):
 
     def __init__(self, config: Mapping[str, Any], seed: int) -> None:
         super().__init__(config, seed)
-        self.expert_ppo = _table(PPOConfig, config["name"], "expert_ppo", config["expert_ppo"])
-        self.expert_seed = int(config["dataset"]["seed"])
-        # The expert sees the state alone: how the policy reads the embedding (its difference) is not the expert's,
-        # so a variant that changes only that (cheetah-difference) shares the expert, its data and the fits.
-        self.expert_env = replace(self.env_config, embedding_difference=False)
+        expert_ppo = _table(PPOConfig, config["name"], "expert_ppo", config["expert_ppo"])
+        self.expert = ExpertSetup.of_task(self.env_config, expert_ppo, int(config["dataset"]["seed"]))  # RecordsExpert
         self._expert_path: Path | None = None
-
-    @property
-    def expert_setup(self) -> tuple[SuiteConfig, PPOConfig, int]:
-        """The expert's environment, PPO settings and seed (`tasks.base.RecordsExpert`)."""
-        return self.expert_env, self.expert_ppo, self.expert_seed
 
     @property
     def dataset_config(self) -> Mapping[str, Any]:
         # The expert's identity is part of the data's: another expert gives another dataset.
-        return {**self.config["dataset"], "expert": expert_identity(self.expert_env, self.expert_ppo, self.expert_seed)}
+        return {**self.config["dataset"], "expert": self.expert.identity()}
 
     def prepare_artifacts(self, home: BenchHome, show_progress: bool = True) -> None:
         """Train (or find) the expert before the dataset is collected from it."""
-        from tqdm import tqdm
-
-        bar = tqdm(desc=f"expert {self.env_config.domain}-{self.env_config.task}", unit="batch",
-                   disable=None if show_progress else True, leave=False)
-
-        def progress(batch: int, total: int, stats: dict[str, float]) -> None:
-            bar.total, bar.n = total, batch
-            bar.set_postfix({k: f"{v:.3g}" for k, v in stats.items()}, refresh=False)
-            bar.refresh()
-
-        try:
-            self._expert_path = ensure_expert(home.experts, self.expert_env, self.expert_ppo, self.expert_seed,
-                                              progress)
-        finally:
-            bar.close()
+        self._expert_path = self.expert.ensure(home.experts, show_progress)
 
     @property
     def collector(self) -> Collector:
         # Before prepare_artifacts it has no expert: it keys the dataset, and refuses to collect.
-        return ExpertDemoCollector(self._expert_path, self.expert_env, self.expert_ppo)
+        return ExpertDemoCollector(self._expert_path, self.expert.env, self.expert.ppo)

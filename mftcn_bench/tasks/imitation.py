@@ -1,7 +1,7 @@
 """Imitation (imitate-swingup, imitate-cheetah): behaviour cloning on the frozen embedding, from an expert's
 demonstrations, the cheap control readout of frozen-encoder suites (CortexBench, R3M, VIP, MVP).
 
-The expert is PPO on the true state (`[expert_ppo]`, trained once under the home's `experts/`). Its
+The expert is PPO on the true state (`[expert_ppo]`; the pinned file or trained in the home, `rl.expert`). Its
 demonstrations (`[demos]`) are its episodes filmed by the policy's camera at the encoder's stream (the size,
 render settings and frame rate of the task's `[dataset]`), with the true state and the expert's action at each
 frame; they are recorded once and keyed like any data set, so every encoder clones the same episodes. With
@@ -23,17 +23,15 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from sklearn.exceptions import DataConversionWarning
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import step_mdp
 
 from mftcn_bench.core.errors import DataError, SpecError
 from mftcn_bench.core.home import BenchHome
@@ -42,11 +40,12 @@ from mftcn_bench.data.cartpole import collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset, ensure_dataset
 from mftcn_bench.encoders.base import Encoder, embed_episode, trains_with_policy, uses_pixels
 from mftcn_bench.rl.demos import ExpertDemoCollector, StatePolicy
-from mftcn_bench.rl.expert import ExpertPolicy, ensure_expert, expert_identity
+from mftcn_bench.rl.expert import ExpertSetup
 from mftcn_bench.rl.observation import observed_env
 from mftcn_bench.rl.observers import make_observer
 from mftcn_bench.rl.ppo import EVAL_SEED_OFFSET, PPOConfig
-from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig, suite_env_of
+from mftcn_bench.rl.rollout import rollout_returns
+from mftcn_bench.rl.suite_env import SuiteBatchEnv, SuiteConfig
 from mftcn_bench.sim.rendering import RenderSettings
 from mftcn_bench.sim.suite_limits import check_dataset_fits, check_episode_fits
 from mftcn_bench.tasks.base import TaskResult
@@ -99,31 +98,6 @@ class BCConfig:
                 raise SpecError(f"task.bc.{key} must be {allowed}, got {getattr(self, key)}")
 
 
-Act = Callable[[TensorDictBase], np.ndarray]  # an environment's step data -> actions [E, A]
-
-
-def rollout_returns(make_env: Callable[[], EnvBase], act: Act, episodes: int) -> np.ndarray:
-    """Returns of `episodes` whole episodes of the environments `make_env()` builds, acting by `act`.
-    Each reset starts every environment from its next initial state (`SuiteBatchEnv`), so two policies on
-    environments of one seed and size meet the same initial states in the same order."""
-    env = make_env()
-    steps = suite_env_of(env).config.agent_steps
-    returns: list[float] = []
-    try:
-        with torch.no_grad():
-            while len(returns) < episodes:
-                td, total = env.reset(), np.zeros(env.batch_size[0])
-                for _ in range(steps):
-                    td.set("action", torch.from_numpy(np.clip(act(td), -1.0, 1.0).astype(np.float32)))
-                    td = env.step(td)
-                    total += td.get(("next", "reward")).reshape(-1).double().numpy()
-                    td = step_mdp(td)
-                returns.extend(total.tolist())
-    finally:
-        env.close()
-    return np.asarray(returns[:episodes])
-
-
 def demo_rows(encoder: Encoder, dataset: MultiViewDataset, camera: str, split: str, count: int | None,
               difference: bool, frames_per_step: int) -> tuple[np.ndarray, np.ndarray]:
     """What the clone learns from: per agent step of the first `count` episodes of `split` (all when None),
@@ -153,10 +127,10 @@ class ImitationTask:
         seen_as = {"height": dataset["height"], "width": dataset["width"], "frame_every": int(dataset["action_repeat"]),
                    "render": RenderSettings.from_table(owner, dataset["render"])}
         self.env_config = parse_table(SuiteConfig, owner, "env", {**config["env"], **seen_as})
-        # The expert sees the state alone: how the clone's embedding is read (its difference) is not the expert's.
-        self.expert_env = replace(self.env_config, embedding_difference=False)
-        self.expert_ppo = parse_table(PPOConfig, owner, "expert_ppo", config["expert_ppo"])
         self.demos = parse_table(DemosConfig, owner, "demos", config["demos"])
+        self.expert = ExpertSetup.of_task(self.env_config, parse_table(PPOConfig, owner, "expert_ppo",
+                                                                       config["expert_ppo"]),
+                                          self.demos.expert_seed)  # tasks.base.RecordsExpert
         self.bc = parse_table(BCConfig, owner, "bc", config["bc"])
         env = self.env_config
         check_episode_fits(env.domain, env.task, env.episode_length, f"{owner}: [env] episode_length")
@@ -183,11 +157,6 @@ class ImitationTask:
 
     # -- the expert and its demonstrations --------------------------------------------------------------
     @property
-    def expert_setup(self) -> tuple[SuiteConfig, PPOConfig, int]:
-        """The expert's environment, PPO settings and seed (`tasks.base.RecordsExpert`)."""
-        return self.expert_env, self.expert_ppo, self.demos.expert_seed
-
-    @property
     def demos_config(self) -> dict[str, Any]:
         """The demonstrations' data set: the expert's episodes at the encoder data's size, render settings
         and frame rate, keyed by the expert (another expert records other demonstrations)."""
@@ -199,7 +168,7 @@ class ImitationTask:
                 "height": data["height"], "width": data["width"], "train_episodes": demos.episodes,
                 "test_episodes": demos.test_episodes, "episode_length": demos.episode_length,
                 "action_repeat": data["action_repeat"], "seed": demos.seed, "render": data["render"],
-                "expert": expert_identity(self.expert_env, self.expert_ppo, demos.expert_seed), **noise}
+                "expert": self.expert.identity(), **noise}
 
     def show_progress(self, enabled: bool) -> None:
         """The expert's PPO bar and the demonstrations' collection bar (`tasks.base.ShowsProgress`)."""
@@ -212,36 +181,17 @@ class ImitationTask:
                             f"{encoder.info.name!r} is trained with a policy (nothing to clone from): use an "
                             f"encoder that embeds frames, true-state or random-state")
 
-    def _ensure_expert(self, home: BenchHome, show_progress: bool) -> Path:
-        from tqdm import tqdm
-
-        if self._expert_path is not None:
-            return self._expert_path
-        env = self.expert_env
-        bar = tqdm(desc=f"expert {env.domain}-{env.task}", unit="batch", disable=None if show_progress else True,
-                   leave=False)
-
-        def progress(batch: int, total: int, stats: dict[str, float]) -> None:
-            bar.total, bar.n = total, batch
-            bar.set_postfix({k: f"{v:.3g}" for k, v in stats.items()}, refresh=False)
-            bar.refresh()
-
-        try:
-            self._expert_path = ensure_expert(home.experts, env, self.expert_ppo, self.demos.expert_seed, progress)
-        finally:
-            bar.close()
-        return self._expert_path
-
     def expert_policy(self) -> StatePolicy:
         """The expert's mean action for one simulator state (what the demonstrations recorded)."""
         if self._expert_path is None:
             raise RuntimeError("the expert must be trained (prepare_artifacts) before it acts")
-        return ExpertPolicy(self._expert_path, self.expert_env, self.expert_ppo)
+        return self.expert.policy(self._expert_path)
 
     def prepare_artifacts(self, home: BenchHome, show_progress: bool = True) -> None:
         """Train (or find) the expert, then record (or find) its demonstrations (`tasks.base.NeedsArtifacts`)."""
-        self._ensure_expert(home, show_progress)
-        collector = ExpertDemoCollector(self._expert_path, self.expert_env, self.expert_ppo,
+        if self._expert_path is None:
+            self._expert_path = self.expert.ensure(home.experts, show_progress)
+        collector = ExpertDemoCollector(self._expert_path, self.expert.env, self.expert.ppo,
                                         policy=self.expert_policy())
         self._demos = ensure_dataset(home.datasets, self.demos_config, collector, show_progress=show_progress)
 
@@ -292,7 +242,7 @@ class ImitationTask:
             return np.stack([expert.act(state) for state in td.get("state")[:, -1].numpy()])
 
         returns = rollout_returns(clone_env, clone_act, self.bc.eval_episodes)
-        expert_returns = rollout_returns(lambda: SuiteBatchEnv(self.expert_env, n, test_seed), expert_act,
+        expert_returns = rollout_returns(lambda: SuiteBatchEnv(self.expert.env, n, test_seed), expert_act,
                                          self.bc.eval_episodes)
         expert_mean = float(expert_returns.mean())
         metrics: dict[str, float | None] = {
@@ -339,10 +289,9 @@ class ExpertDataImitationTask(ImitationTask):
     @property
     def dataset_config(self) -> Mapping[str, Any]:
         # As `tasks.control.ExpertDemoControlTask`: the expert's identity is part of the data's.
-        return {**self.config["dataset"], "expert": expert_identity(self.expert_env, self.expert_ppo,
-                                                                     self.demos.expert_seed)}
+        return {**self.config["dataset"], "expert": self.expert.identity()}
 
     @property
     def collector(self) -> Collector:
         # Before prepare_artifacts it has no expert: it keys the dataset, and refuses to collect.
-        return ExpertDemoCollector(self._expert_path, self.expert_env, self.expert_ppo)
+        return ExpertDemoCollector(self._expert_path, self.expert.env, self.expert.ppo)
