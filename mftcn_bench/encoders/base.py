@@ -22,9 +22,9 @@ from mftcn_bench.data.dataset import MultiViewDataset
 from mftcn_bench.encoders.privileged import Withheld, visible
 
 if TYPE_CHECKING:
+    import torch
     from torch import nn
 
-    from mftcn_bench.encoders.bases import FrozenBase
     from mftcn_bench.encoders.feature_cache import FeatureCache
 
 
@@ -109,6 +109,22 @@ class Encoder(Protocol):
 
 
 @runtime_checkable
+class FrozenFrameBase(Protocol):
+    """A frozen per-frame network whose features the harness caches once per data set and shares between
+    encoders (the built-in `encoders.bases.FrozenBase`, or a plugin's own backbone): it must give the same
+    features for a frame whoever asks, so it never trains."""
+
+    def identity(self) -> dict[str, Any]:
+        """Everything its features depend on besides its code (settings, the weights' checksum): with the
+        class's code it keys the cache, so another base never reads these features."""
+        ...
+
+    def __call__(self, images: torch.Tensor) -> torch.Tensor:
+        """uint8 frames [B, 3, H, W] on the base's device -> float features [B, C, h, w]."""
+        ...
+
+
+@runtime_checkable
 class FeatureCacheUser(Protocol):
     """Optional capability: an encoder on a frozen per-frame base whose features the harness caches.
 
@@ -116,7 +132,7 @@ class FeatureCacheUser(Protocol):
     dataset and hands it over with `use_feature_cache`; the encoder then reads base features from it
     instead of running the base on frames it holds."""
 
-    def frozen_base(self) -> FrozenBase | None:
+    def frozen_base(self) -> FrozenFrameBase | None:
         """The frozen base, or None when this encoder's base trains (then nothing is cached)."""
         ...
 

@@ -159,7 +159,9 @@ class EfficientNetLite0Base(nn.Module):
         if not path.is_file():
             raise BenchError(f"efficientnet-lite0 weights {path} not found; encoder.model.base.weights must name "
                              f"an EfficientNet-Lite0 state dict, or be \"\" for the installed package's")
-        net = EfficientNet.from_name("efficientnet-lite0")
+        # TF "SAME" padding from each input's own size: the package's default (image_size 224) fixes the padding
+        # of its 224-pixel halvings, wrong where a halving is odd (84x84: 21 -> 11, not 10)
+        net = EfficientNet.from_name("efficientnet-lite0", image_size=None)
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
             net.load_state_dict(state, strict=True)

@@ -24,11 +24,10 @@ import json
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from torch import nn
 
 from mftcn_bench.core import identity
 from mftcn_bench.core.device import CPU, Placement
@@ -37,6 +36,9 @@ from mftcn_bench.core.fileio import atomic_write_bytes, exclusive_lock, resume_f
 from mftcn_bench.core.progress import progress_bar
 from mftcn_bench.core.provenance import file_sha256
 from mftcn_bench.data.dataset import MultiViewDataset
+
+if TYPE_CHECKING:
+    from mftcn_bench.encoders.base import FrozenFrameBase
 
 FORMAT_VERSION = 1
 
@@ -49,7 +51,7 @@ def frames_digest(frames: np.ndarray) -> str:
 
 
 @torch.no_grad()
-def base_features(base: nn.Module, frames: np.ndarray, batch_size: int,
+def base_features(base: FrozenFrameBase, frames: np.ndarray, batch_size: int,
                   device: torch.device | None = None) -> np.ndarray:
     """float32 [T, C, h, w] base features of uint8 frames [T, H, W, 3], in batches on `device` (where
     `base` is; the CPU by default)."""
@@ -111,7 +113,7 @@ class FeatureCache:
         return self.load(episode)[view]
 
 
-def cache_id(dataset: MultiViewDataset, base: nn.Module, base_identity: Mapping[str, Any],
+def cache_id(dataset: MultiViewDataset, base: FrozenFrameBase, base_identity: Mapping[str, Any],
              placement: Placement = CPU) -> str:
     """The cache's identity: the dataset, the base's settings and weights, its code, the cache format and
     the device whose base passes computed it."""
@@ -119,7 +121,7 @@ def cache_id(dataset: MultiViewDataset, base: nn.Module, base_identity: Mapping[
                                      placement.identity())
 
 
-def ensure_feature_cache(features_dir: Path, dataset: MultiViewDataset, base: nn.Module,
+def ensure_feature_cache(features_dir: Path, dataset: MultiViewDataset, base: FrozenFrameBase,
                          base_identity: Mapping[str, Any], *, batch_size: int = 64,
                          show_progress: bool = True, placement: Placement = CPU) -> FeatureCache:
     """The cache of `base`'s features on every episode of `dataset`, built (or finished) if needed; the base

@@ -27,7 +27,7 @@ from mftcn_bench.core.errors import SpecError
 from mftcn_bench.core.specs import EncoderSpec
 from mftcn_bench.data.clips import clip_indices
 from mftcn_bench.data.dataset import MultiViewDataset
-from mftcn_bench.encoders.base import FitBudget, ProgressFn
+from mftcn_bench.encoders.base import FitBudget, FrozenFrameBase, ProgressFn
 from mftcn_bench.encoders.bases import BaseConfig, FrozenBase, base_channels, build_base
 from mftcn_bench.encoders.common import FrameHeadEncoder, check_image_shape, map_batches, parse_table, to_numpy
 from mftcn_bench.encoders.feature_cache import FeatureCache, base_features
@@ -173,7 +173,7 @@ class OnBaseEncoder(FrameHeadEncoder):
         super().__init__(spec, image_shape, seed)
         self.feature_cache: FeatureCache | None = None
 
-    def frozen_base(self) -> FrozenBase | None:
+    def frozen_base(self) -> FrozenFrameBase | None:
         """The frozen base whose per-frame features can be cached, or None when the base trains."""
         return self.net.frozen_base
 

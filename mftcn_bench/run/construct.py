@@ -13,8 +13,7 @@ from typing import Any
 from mftcn_bench.core import registry
 from mftcn_bench.core.errors import BenchError
 from mftcn_bench.core.specs import encoder_spec_from_config
-from mftcn_bench.encoders.base import Encoder, FeatureCacheUser
-from mftcn_bench.encoders.bases import FrozenBase
+from mftcn_bench.encoders.base import Encoder, FeatureCacheUser, FrozenFrameBase
 
 
 def construct_encoder(entry: registry.Entry, encoder_config: Mapping[str, Any], seed: int,
@@ -28,6 +27,12 @@ def construct_encoder(entry: registry.Entry, encoder_config: Mapping[str, Any], 
     return encoder
 
 
-def frozen_base_of(encoder: Encoder) -> FrozenBase | None:
-    """The encoder's frozen base when it declares one (the `FeatureCacheUser` capability)."""
-    return encoder.frozen_base() if isinstance(encoder, FeatureCacheUser) else None
+def frozen_base_of(encoder: Encoder) -> FrozenFrameBase | None:
+    """The encoder's frozen base when it declares one (the `FeatureCacheUser` capability); one that is no
+    `FrozenFrameBase` is refused in one line."""
+    base = encoder.frozen_base() if isinstance(encoder, FeatureCacheUser) else None
+    if base is not None and not isinstance(base, FrozenFrameBase):
+        raise BenchError(f"encoder {encoder.info.name!r}: frozen_base() returned a {type(base).__name__}, which is "
+                         f"no FrozenFrameBase (identity() and a call on uint8 frames [B, 3, H, W]; "
+                         f"mftcn_bench.encoders.base)")
+    return base
