@@ -91,23 +91,23 @@ def test_probe_lookback_plot_draws_the_seed_means_and_the_papers_figures(tmp_pat
     (path,) = plot_probe_lookback(probe, tmp_path, accept=accept_all)
     assert path.name == "probe-lookback-quick.png" and path.read_bytes()[:8] == PNG
     [fig] = drawn
-    [ax] = fig.axes
-    assert ax.get_yscale() == "log" and ax.get_xlabel() == "lookback (frames)"
+    axes = {ax.get_title(): ax for ax in fig.axes}
+    assert list(axes) == ["average", "position", "motion"]  # one panel per metric
+    assert all(ax.get_yscale() == "log" and ax.get_xlabel() == "lookback (frames)" for ax in axes.values())
     # Lookback = (frames - 1) x stride + 1 (stride 1 here); mean and sample std over the two seeds.
     spread = np.std([0.0, 1.0], ddof=1)
-    assert errorbars(ax) == {
-        "average": ([1, 2, 4], pytest.approx([1.5, 1.0, 0.75]), pytest.approx([spread] * 3)),
-        "position": ([1, 2, 4], pytest.approx([0.1] * 3), pytest.approx([0.0] * 3)),
-        "motion": ([1, 2, 4], pytest.approx([2.0] * 3), pytest.approx([0.0] * 3)),
-    }
-    # Beside each, dashed, the paper's figures for the same embedding size (32) at its lookbacks.
+    expected = {"average": ([1, 2, 4], pytest.approx([1.5, 1.0, 0.75]), pytest.approx([spread] * 3)),
+                "position": ([1, 2, 4], pytest.approx([0.1] * 3), pytest.approx([0.0] * 3)),
+                "motion": ([1, 2, 4], pytest.approx([2.0] * 3), pytest.approx([0.0] * 3))}
+    for metric, ax in axes.items():
+        assert errorbars(ax) == {"ours": expected[metric]}
+    # Beside each, dashed in the same colour, the paper's figures for the same embedding size (32).
     paper = {metric: {int(row.labels[1]): row.paper[i] for row in PROBE.rows
                       if row.labels[0] == "32" and row.labels[1].isdigit()}
              for i, metric in enumerate(("average", "position", "motion"))}
-    dashed = {line.get_label(): line for line in ax.lines if line.get_linestyle() == "--"}
-    assert set(dashed) == {f"{metric}, paper" for metric in paper}
     for metric, points in paper.items():
-        line = dashed[f"{metric}, paper"]
+        [line] = [line for line in axes[metric].lines if line.get_linestyle() == "--"]
+        assert line.get_label() == "paper" and line.get_color() == axes[metric].containers[0].lines[0].get_color()
         assert list(line.get_xdata()) == sorted(points)
         assert list(line.get_ydata()) == [points[k] for k in sorted(points)]
 
@@ -121,11 +121,37 @@ def test_pouring_lookback_plot_draws_each_error_against_the_clips_lookback(tmp_p
     (path,) = plot_pouring_lookback(pouring, tmp_path, accept=accept_all)
     assert path.name == "pouring-lookback-quick.png" and path.read_bytes()[:8] == PNG
     [fig] = drawn
-    [ax] = fig.axes
-    assert ax.get_yscale() == "linear" and ax.get_ylabel() == "error (%)"
-    assert errorbars(ax) == {  # one seed each: no error bar
+    axes = {ax.get_title(): ax for ax in fig.axes}
+    assert fig.axes[0].get_yscale() == "linear" and fig.axes[0].get_ylabel() == "error (%)"
+    expected = {  # one seed each: no error bar
         "static_error": ([1, 7, 13], pytest.approx([21.0, 23.0, 24.0]), pytest.approx([0.0] * 3)),
         "motion_error": ([1, 7, 13], pytest.approx([25.0] * 3), pytest.approx([0.0] * 3)),
-        "alignment_error": ([1, 7, 13], pytest.approx([8.0, 6.0, 5.0]), pytest.approx([0.0] * 3)),
-    }
-    assert not [line for line in ax.lines if line.get_linestyle() == "--"]  # no paper figures to compare
+        "alignment_error": ([1, 7, 13], pytest.approx([8.0, 6.0, 5.0]), pytest.approx([0.0] * 3))}
+    assert {metric: errorbars(ax)["ours"] for metric, ax in axes.items()} == expected
+    # The paper's mfTCN^1/7/13/29 (on the real data set), dashed, beside each error.
+    static = [line for line in axes["static_error"].lines if line.get_linestyle() == "--"]
+    assert [(list(line.get_xdata()), list(line.get_ydata())) for line in static] == \
+        [([1, 7, 13, 29], [18.9, 17.3, 16.8, 19.4])]
+
+
+def test_plot_reads_a_folder_of_records_and_refuses_a_missing_one(tmp_path, capsys):
+    from mftcn_bench.cli import main
+    from mftcn_bench.core import registry
+    from mftcn_bench.core.specs import resolve_config
+    from mftcn_bench.results.records_io import export_results
+    from mftcn_bench.results.store import ResultStore
+
+    store = ResultStore(tmp_path / "results.sqlite")
+    _, config = resolve_config(registry.get("encoders", "true-state").spec, registry.get("tasks", "swingup").spec,
+                               "quick")  # a run of today's specs: the default selection counts it
+    for seed in range(2):
+        store.put(make_record("true-state", "swingup", seed, {"return_mean": 1.0}, config=config,
+                              curves={"train": {"frames": [0, 500, 1000], "wall_s": [0, 1, 2],
+                                                "return": [0.0, 1.0, 2.0]}}))
+    export_results(store, tmp_path / "records")
+    assert main(["plot", "curves", "--records", str(tmp_path / "records"), "--out", str(tmp_path / "png"),
+                 "--home", str(tmp_path / "empty-home")]) == 0
+    assert (tmp_path / "png" / "curves-swingup-quick.png").read_bytes()[:8] == PNG
+    assert main(["plot", "curves", "--records", str(tmp_path / "nothing"), "--home", str(tmp_path / "h")]) == 2
+    assert capsys.readouterr().err.strip().endswith(f"records folder {tmp_path / 'nothing'} does not exist; give a "
+                                                    f"folder of run JSON files, such as results")

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import os
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -99,6 +100,8 @@ def add_commands(commands: argparse._SubParsersAction, common: Callable[[argpars
     plot.add_argument("kind", choices=PLOT_CHOICES)
     plot.add_argument("--task", help="learning curves of this task only")
     plot.add_argument("--out", default="plots", help="folder to write (default ./plots)")
+    plot.add_argument("--records", metavar="DIR", help="plot the run JSON files in DIR (results/: docs/RESULTS.md's "
+                                                       "figures) instead of the home's store")
     common(plot)
     plot.set_defaults(handler=cmd_plot)
 
@@ -215,18 +218,28 @@ def cmd_results(args: argparse.Namespace) -> None:
               f"{summary.unchanged} already stored")
 
 
-def _fill_document(document: Path, records: Path, check: bool) -> None:
+@contextmanager
+def _store_of(folder: Path):
+    """A temporary store holding the run JSON files of `folder` (`results export`; the project's results/)."""
     import tempfile
 
-    from mftcn_bench.results.document import fill_generated
     from mftcn_bench.results.records_io import import_results
     from mftcn_bench.results.store import ResultStore
 
-    if not document.is_file():
-        raise SpecError(f"no document {document}")
+    if not folder.is_dir():
+        raise SpecError(f"records folder {folder} does not exist; give a folder of run JSON files, such as results")
     with tempfile.TemporaryDirectory() as tmp:
         store = ResultStore(Path(tmp) / "results.sqlite")
-        import_results(store, records)
+        import_results(store, folder)
+        yield store
+
+
+def _fill_document(document: Path, records: Path, check: bool) -> None:
+    from mftcn_bench.results.document import fill_generated
+
+    if not document.is_file():
+        raise SpecError(f"no document {document}")
+    with _store_of(records) as store:
         text = document.read_text(encoding="utf-8")
         filled = fill_generated(text, store)
     if check:
@@ -241,7 +254,12 @@ def _fill_document(document: Path, records: Path, check: bool) -> None:
 def cmd_plot(args: argparse.Namespace) -> None:
     from mftcn_bench.results import plots
 
-    records, out = _store(args).query(), Path(args.out)
+    if args.records:
+        with _store_of(Path(args.records)) as store:
+            records = store.query()
+    else:
+        records = _store(args).query()
+    out = Path(args.out)
     if args.kind == "curves":
         written = plots.plot_curves(records, out, args.task)
     elif args.kind == "probe-lookback":
