@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The prepared device check of issue 22, in two halves.
+# The prepared device check, in two halves.
 #
 #   bash scripts/device-check.sh prepare      # here (CPU, registries reachable): what the GPU machine lacks
 #   bash scripts/device-check.sh run OUT      # on the lent GPU machine: install it, test, smoke, bench -> OUT/

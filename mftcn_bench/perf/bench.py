@@ -3,8 +3,7 @@
 Absolute times drift on a shared machine, so every figure is measured beside its reference, in the same
 process, alternating blocks of the two (the order reversed every other round) so that a change of load
 hits both. Everything runs with one torch thread (`torch.set_num_threads(1)`; the probe's child process also
-with OMP/MKL/OpenBLAS at 1 thread), so a ratio is not an artefact of thread counts. The targets
-(issue 7):
+with OMP/MKL/OpenBLAS at 1 thread), so a ratio is not an artefact of thread counts. The targets:
 
 | figure | reference | target |
 |---|---|---|

@@ -1,7 +1,7 @@
 """The paper's five result tables as data: rows (label, our encoder and task, a config filter), metric
 columns, and the paper's published figures; and tables of our own: `swingup-limits` and `cheetah-limits`, the
-PPO-limit analyses of issues 20 and 36 (what keeps PPO on an embedding below PPO on true state), the streams
-of issue 34 and the behaviour cloning of issue 37.
+PPO-limit analyses (what keeps PPO on an embedding below PPO on true state), the encoder's streams of frames
+and behaviour cloning.
 
 This module is the one place where the paper's numbers are written down (from
 "Learning Actionable Representations from Visual Observations", tables `table_regression`,
@@ -247,7 +247,7 @@ CHEETAH_LIMITS = _policy_input_table(
     "row's expert, demonstrations and encoder fit (same preset and seed), so the rows differ only in the "
     "policy's input. Other encoders' cheetah runs are in the cheetah table.")
 
-# --- Not in the paper: the encoder's stream of frames at the physics rate and at the agent rate (issue 34) --
+# --- Not in the paper: the encoder's stream of frames at the physics rate and at the agent rate -----------
 _PHYSICS, _AGENT = "physics rate (0.01 s)", "agent rate (0.08 s)"
 _PROBE_STREAMS = ((_PHYSICS, ""), (_AGENT, "-agent-rate"))  # label, task name suffix: the probe's default
 _CONTROL_STREAMS = ((_PHYSICS, "-physics-rate"), (_AGENT, ""))  # and the control tasks' are not the same stream
@@ -282,7 +282,7 @@ SWINGUP_STREAMS = PaperTable(
     other_runs=False,
 )
 
-# --- Not in the paper: behaviour cloning on the frozen embedding (issue 37) ---------------------------------
+# --- Not in the paper: behaviour cloning on the frozen embedding ------------------------------------------
 _DEMONSTRATIONS = "task.bc.demonstrations"
 _IMITATE_ROWS = (("True state (BC's upper bound)", "true-state"), ("Random state (the floor)", "random-state"),
                  ("Lite0 features (the frozen base alone)", "lite0-features"), ("PVE", "pve"), ("TCN", "tcn"),
