@@ -3,6 +3,7 @@ checksum; `mftcn-bench expert train` makes one on purpose."""
 
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -82,3 +83,65 @@ def test_another_expert_file_gives_the_data_another_key_and_a_damaged_one_is_ref
 
     assert dataset_id(first, task.collector) != dataset_id(second, task.collector)
     assert experts.ensure_expert(tmp_path / "home", env, ppo, seed) == path
+
+
+def test_pinned_demonstrations_render_the_live_recording_without_the_expert_and_key_the_data(tmp_path, pinned,
+                                                                                              capsys, monkeypatch):
+    from mftcn_bench.rl import demos
+
+    smoke = ["cheetah", "--preset", "smoke", "--no-progress"]
+    expert = cheetah_task().expert
+    experts.pin_expert(experts.train_expert(tmp_path / "trainer", expert.env, expert.ppo, expert.seed),
+                       expert.env, expert.ppo, expert.seed)
+    live_config = dict(cheetah_task().dataset_config)
+    assert "demos" not in live_config  # no pinned demonstrations yet: recorded by running the expert
+    assert main(["data", "collect", *smoke, "--home", str(tmp_path / "live")]) == 0
+
+    assert main(["expert", "demos", "--task", "cheetah", "--preset", "smoke", "--no-progress"]) == 0
+    path = demos.pinned_demos(expert, live_config)
+    assert path is not None and path.parent == pinned and f"pinned {path}" in capsys.readouterr().out
+    sidecar = json.loads(path.with_suffix(".json").read_text())
+    assert sidecar["episodes"] == 4 and sidecar["expert"] == live_config["expert"]
+    assert main(["expert", "demos", "--task", "cheetah", "--preset", "smoke"]) == 2  # refused without --force
+    assert "--force" in capsys.readouterr().err
+
+    def no_expert(*args, **kwargs):
+        raise AssertionError("the expert ran although its demonstrations are pinned")
+
+    monkeypatch.setattr(demos, "ExpertPolicy", no_expert)
+    assert main(["data", "collect", *smoke, "--home", str(tmp_path / "pinned-home")]) == 0
+    (live,), (rendered,) = collected(tmp_path / "live"), collected(tmp_path / "pinned-home")
+    assert rendered.config["demos"] == f"pinned-{sidecar['sha256'][:16]}" and rendered.root != live.root
+    for episode in range(4):  # the pinned states, set and rendered, give the live recording's bytes
+        a, b = live.load(episode), rendered.load(episode)
+        for name in ("frames", "state", "action"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"episode {episode} {name}")
+
+    stored = dict(np.load(path))
+    stored["qpos"] = stored["qpos"] + 1e-3
+    np.savez_compressed(path, **stored)  # another file: refused until its sidecar is remade
+    with pytest.raises(TrainingError, match="pinned demonstrations .* does not match the checksum"):
+        demos.pinned_demos(expert, live_config)
+    sidecar["sha256"] = experts.file_sha256(path)
+    path.with_suffix(".json").write_text(json.dumps(sidecar))
+    assert cheetah_task().dataset_config["demos"] != rendered.config["demos"]
+
+
+@pytest.mark.parametrize("task, preset", [("cheetah", "paper"), ("cheetah", "quick"), ("cheetah-difference", "paper"),
+                                          ("imitate-cheetah", "paper"), ("imitate-swingup", "paper"),
+                                          ("imitate-swingup", "quick")])
+def test_the_project_pins_the_demonstrations_of_every_expert_preset(task, preset):
+    """Each preset that records the pinned expert renders committed demonstrations: they are named by the
+    data set's key and hold every episode and frame it films (`mftcn-bench expert demos`)."""
+    from mftcn_bench.rl.demos import pinned_demos
+
+    recorder = prepare(RunRequest("true-state", task, preset)).task
+    config = recorder.demos_config
+    path = pinned_demos(recorder.expert, config)  # its checksum checked against the sidecar
+    assert path is not None and config["demos"] == f"pinned-{experts.file_sha256(path)[:16]}"
+    sidecar = json.loads(path.with_suffix(".json").read_text())
+    assert sidecar["expert"] == config["expert"] and sidecar["episode_length"] >= config["episode_length"]
+    assert sidecar["episodes"] >= config["train_episodes"] + config["test_episodes"]
+    with np.load(path) as stored:
+        shape = (sidecar["episodes"], sidecar["episode_length"])
+        assert stored["qpos"].shape[:2] == stored["qvel"].shape[:2] == stored["action"].shape[:2] == shape

@@ -66,18 +66,21 @@ def pinned_expert(env: SuiteConfig, ppo: PPOConfig, seed: int, folder: Path | No
     """The pinned expert of this config, its checksum checked against its sidecar (a truncated file or a
     Git LFS pointer is refused in one line); None when the project pins none."""
     path = pinned_path(env, ppo, seed, folder)
-    if not path.exists():
-        return None
+    return checked_pinned(path, "pinned expert", "mftcn-bench expert train") if path.exists() else None
+
+
+def checked_pinned(path: Path, what: str, remake: str) -> Path:
+    """`path`, a committed artifact, once its checksum matches its `.json` sidecar's `sha256`; otherwise
+    one line naming the file and `remake`, the command that makes it again."""
     sidecar = path.with_suffix(".json")
     try:
         expected = json.loads(sidecar.read_text())["sha256"]
     except (OSError, ValueError, KeyError):
-        raise TrainingError(f"pinned expert {path.name} has no readable {sidecar.name} (its checksum); restore "
-                            f"both files from the repository, or remake them with `mftcn-bench expert train`") from None
+        raise TrainingError(f"{what} {path.name} has no readable {sidecar.name} (its checksum); restore both "
+                            f"files from the repository, or remake them with `{remake}`") from None
     if file_sha256(path) != expected:
-        raise TrainingError(f"pinned expert {path} does not match the checksum in {sidecar.name}; restore it "
-                            f"from the repository (a Git LFS pointer?) or remake it with `mftcn-bench expert "
-                            f"train --force`")
+        raise TrainingError(f"{what} {path} does not match the checksum in {sidecar.name}; restore it from the "
+                            f"repository (a Git LFS pointer?) or remake it with `{remake} --force`")
     return path
 
 

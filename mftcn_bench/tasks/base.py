@@ -80,9 +80,13 @@ class NeedsArtifacts(Protocol):
 @runtime_checkable
 class RecordsExpert(Protocol):
     """A task whose data are a true-state expert's demonstrations: what trains that expert (its environment
-    as the state sees it, its PPO settings, its seed), for `mftcn-bench expert train`."""
+    as the state sees it, its PPO settings, its seed), for `mftcn-bench expert train`, and the data set its
+    demonstrations are recorded as, for `mftcn-bench expert demos`."""
 
     expert: ExpertSetup
+
+    @property
+    def demos_config(self) -> Mapping[str, Any]: ...
 
 
 @runtime_checkable

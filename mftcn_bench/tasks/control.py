@@ -38,7 +38,7 @@ from mftcn_bench.core.specs import parse_table
 from mftcn_bench.data.cartpole import TARGETS, collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset
 from mftcn_bench.encoders.base import Encoder, trains_with_policy, uses_pixels
-from mftcn_bench.rl.demos import ExpertDemoCollector
+from mftcn_bench.rl.demos import demo_collector, recorded_config
 from mftcn_bench.rl.expert import ExpertSetup
 from mftcn_bench.rl.observation import PixelClip, Readout, observed_env
 from mftcn_bench.rl.observers import make_observer
@@ -228,8 +228,13 @@ class ExpertDemoControlTask(ControlTask):
 
     @property
     def dataset_config(self) -> Mapping[str, Any]:
-        # The expert's identity is part of the data's: another expert gives another dataset.
-        return {**self.config["dataset"], "expert": self.expert.identity()}
+        # The expert's identity (and the pinned demonstrations') is part of the data's: another gives another dataset.
+        return recorded_config(self.expert, self.config["dataset"])
+
+    @property
+    def demos_config(self) -> Mapping[str, Any]:
+        """The expert's demonstrations: this task's own data set (`tasks.base.RecordsExpert`)."""
+        return self.dataset_config
 
     def prepare_artifacts(self, home: BenchHome, show_progress: bool = True) -> None:
         """Train (or find) the expert before the dataset is collected from it."""
@@ -238,4 +243,4 @@ class ExpertDemoControlTask(ControlTask):
     @property
     def collector(self) -> Collector:
         # Before prepare_artifacts it has no expert: it keys the dataset, and refuses to collect.
-        return ExpertDemoCollector(self._expert_path, self.expert.env, self.expert.ppo)
+        return demo_collector(self.expert, self._expert_path, self.config["dataset"])

@@ -39,7 +39,7 @@ from mftcn_bench.core.specs import parse_table
 from mftcn_bench.data.cartpole import collect_episode
 from mftcn_bench.data.dataset import Collector, MultiViewDataset, ensure_dataset
 from mftcn_bench.encoders.base import Encoder, embed_episode, trains_with_policy, uses_pixels
-from mftcn_bench.rl.demos import ExpertDemoCollector, StatePolicy
+from mftcn_bench.rl.demos import StatePolicy, demo_collector, recorded_config
 from mftcn_bench.rl.expert import ExpertSetup
 from mftcn_bench.rl.observation import observed_env
 from mftcn_bench.rl.observers import make_observer
@@ -159,16 +159,16 @@ class ImitationTask:
     @property
     def demos_config(self) -> dict[str, Any]:
         """The demonstrations' data set: the expert's episodes at the encoder data's size, render settings
-        and frame rate, keyed by the expert (another expert records other demonstrations)."""
+        and frame rate, keyed by the expert and its pinned demonstrations, if any (`rl.demos.recorded_config`)."""
         data, demos = self.config["dataset"], self.demos
         # The noise enters only when there is some, so noiseless demonstrations keep the id of the expert data
         # set they are (cheetah's: the encoder's own data).
         noise = {"action_noise": demos.action_noise} if demos.action_noise else {}
-        return {"name": demos.name, "domain": self.env_config.domain, "cameras": list(demos.cameras),
-                "height": data["height"], "width": data["width"], "train_episodes": demos.episodes,
-                "test_episodes": demos.test_episodes, "episode_length": demos.episode_length,
-                "action_repeat": data["action_repeat"], "seed": demos.seed, "render": data["render"],
-                "expert": self.expert.identity(), **noise}
+        return recorded_config(self.expert, {
+            "name": demos.name, "domain": self.env_config.domain, "cameras": list(demos.cameras),
+            "height": data["height"], "width": data["width"], "train_episodes": demos.episodes,
+            "test_episodes": demos.test_episodes, "episode_length": demos.episode_length,
+            "action_repeat": data["action_repeat"], "seed": demos.seed, "render": data["render"], **noise})
 
     def show_progress(self, enabled: bool) -> None:
         """The expert's PPO bar and the demonstrations' collection bar (`tasks.base.ShowsProgress`)."""
@@ -191,9 +191,9 @@ class ImitationTask:
         """Train (or find) the expert, then record (or find) its demonstrations (`tasks.base.NeedsArtifacts`)."""
         if self._expert_path is None:
             self._expert_path = self.expert.ensure(home.experts, show_progress)
-        collector = ExpertDemoCollector(self._expert_path, self.expert.env, self.expert.ppo,
-                                        policy=self.expert_policy())
-        self._demos = ensure_dataset(home.datasets, self.demos_config, collector, show_progress=show_progress)
+        config = self.demos_config
+        collector = demo_collector(self.expert, self._expert_path, config)
+        self._demos = ensure_dataset(home.datasets, config, collector, show_progress=show_progress)
 
     # -- the clone --------------------------------------------------------------------------------------
     def _regressor_config(self, rows: int) -> ProbeConfig:
@@ -289,9 +289,9 @@ class ExpertDataImitationTask(ImitationTask):
     @property
     def dataset_config(self) -> Mapping[str, Any]:
         # As `tasks.control.ExpertDemoControlTask`: the expert's identity is part of the data's.
-        return {**self.config["dataset"], "expert": self.expert.identity()}
+        return recorded_config(self.expert, self.config["dataset"])
 
     @property
     def collector(self) -> Collector:
         # Before prepare_artifacts it has no expert: it keys the dataset, and refuses to collect.
-        return ExpertDemoCollector(self._expert_path, self.expert.env, self.expert.ppo)
+        return demo_collector(self.expert, self._expert_path, self.config["dataset"])
