@@ -172,7 +172,7 @@ def record_demos(expert: ExpertSetup, expert_path: Path, dataset_config: Mapping
                  out: Path, show_progress: bool = True) -> Path:
     """Pin `episodes` demonstrations of `expert` stepped as `dataset_config`: each frame's full simulator
     state (qpos, qvel) and the expert's action, in `out`, with a sidecar (checksum, expert, stepping, CPU)."""
-    policy = ExpertPolicy(expert_path, expert.env, expert.ppo)
+    policy = expert.policy(expert_path)
     length = int(dataset_config["episode_length"])
     qpos: list[np.ndarray] = []
     qvel: list[np.ndarray] = []
@@ -199,8 +199,10 @@ def record_demos(expert: ExpertSetup, expert_path: Path, dataset_config: Mapping
     return out
 
 
-def demo_collector(expert: ExpertSetup, expert_path: Path | None,
-                   dataset_config: Mapping[str, Any]) -> ExpertDemoCollector:
+def demo_collector(expert: ExpertSetup, expert_path: Path | None, dataset_config: Mapping[str, Any],
+                   policy: StatePolicy | None = None) -> ExpertDemoCollector:
     """The collector of a demonstrations data set: the pinned demonstrations where the project has them,
-    otherwise the expert at `expert_path` (None before the task's artifacts are prepared: it keys only)."""
-    return ExpertDemoCollector(expert_path, expert.env, expert.ppo, demos=pinned_demos(expert, dataset_config))
+    otherwise `policy` or the expert at `expert_path` (None before the task's artifacts are prepared: it keys
+    only)."""
+    return ExpertDemoCollector(expert_path, expert.env, expert.ppo, policy,
+                               demos=pinned_demos(expert, dataset_config))

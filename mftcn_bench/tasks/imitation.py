@@ -192,7 +192,7 @@ class ImitationTask:
         if self._expert_path is None:
             self._expert_path = self.expert.ensure(home.experts, show_progress)
         config = self.demos_config
-        collector = demo_collector(self.expert, self._expert_path, config)
+        collector = demo_collector(self.expert, self._expert_path, config, policy=self.expert_policy())
         self._demos = ensure_dataset(home.datasets, config, collector, show_progress=show_progress)
 
     # -- the clone --------------------------------------------------------------------------------------
