@@ -109,7 +109,7 @@ def test_probe_embedding_phase_runs_the_task_as_a_run_does(tmp_path, monkeypatch
     # Peaks in bytes (VmHWM is in kB): the embedding phase's is no less than what the process held when it
     # began; the fit phase's (counted from the reset after embedding) is no more than the peak read after
     # it and no less than what the process still held then. The kernel counts RSS in per-CPU batches, so a
-    # reading can lag by some pages (CI saw 76 KiB): a few MiB of slack on the lower bounds.
+    # reading can lag by some pages: a few MiB of slack on the lower bounds.
     slack = 16 * 2**20
     assert memory.embed_peak >= held_before - slack
     assert held_after - slack <= memory.fit_peak <= peak_after
