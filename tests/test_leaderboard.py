@@ -1,11 +1,14 @@
 """Leaderboards: ranking from the task spec, a pure function of the stored results."""
 
+import dataclasses
+
 import pytest
 
 from mftcn_bench.core import registry
 from mftcn_bench.core.specs import TaskSpec, resolve_config
 from mftcn_bench.results.leaderboard import entries, render_boards, write_boards
 from mftcn_bench.results.ranking import Ranking, ranking
+from mftcn_bench.results.selection import shared_dataset
 from tests.records import make_record, probe_config
 
 RESULTS = [("true-state", 0, 0.001, "2026-03-01T10:00:00+00:00"), ("true-state", 1, 0.003, "2026-03-04T10:00:00+00:00"),
@@ -33,12 +36,45 @@ def test_board_ranks_pixel_encoders_and_lists_references_apart():
     ranked, references = text.split("References (not ranked):")
     lines = [line for line in ranked.splitlines() if line.startswith("| ") and "rank" not in line]
     assert [[c.strip() for c in line.split("|")[1:-1]] for line in lines] == [
-        ["1", "pve", "2.70", "-", "1", "pixels, action", "mftcn-bench 0.1.0", "2026-03-02"]]
+        ["1", "pve", "2.70", "-", "1", "pixels, action", "dataset", "mftcn-bench 0.1.0", "2026-03-02"]]
     lines = [line for line in references.splitlines() if line.startswith("| ") and "role" not in line]
     rows = [[c.strip() for c in line.split("|")[1:-1]] for line in lines]
     assert [row[:2] for row in rows] == [["true-state", "reads: state"], ["random-state", "floor (random features)"]]
-    assert rows[0][2:] == ["0.00200 ± 0.00141", "-", "2", "mftcn-bench 0.1.0", "2026-03-04"]  # 3 significant digits
+    assert rows[0][2:] == ["0.00200 ± 0.00141", "-", "2", "dataset", "mftcn-bench 0.1.0", "2026-03-04"]  # 3 digits
+    assert "Not one data set" not in text
     assert "## preset `quick`" in text and "ddof=1" in text
+
+
+def test_an_entry_on_another_recording_than_the_boards_latest_run_is_marked():
+    def run(encoder, dataset, at):
+        record = make_record(encoder, "cartpole-probe", 0, {"average": 1.0}, config=probe_config(encoder),
+                             created_at=at)
+        return dataclasses.replace(record, dataset_id=dataset)
+
+    runs = [run("mftcn1", "old0recording000", "2026-03-01T10:00:00+00:00"),
+            run("mftcn5", "new0recording000", "2026-03-05T10:00:00+00:00"),
+            run("pixels-cnn", None, "2026-03-09T10:00:00+00:00")]  # reads no data: not the board's data set
+    board = {e.encoder: e for e in entries(runs, ranking("cartpole-probe"))}
+    assert (board["mftcn1"].dataset, board["mftcn1"].other_dataset) == ("old0recording000", True)
+    assert (board["mftcn5"].dataset, board["mftcn5"].other_dataset) == ("new0recording000", False)
+    assert (board["pixels-cnn"].dataset, board["pixels-cnn"].other_dataset) == (None, False)
+    text = render_boards(runs)["cartpole-probe.md"]
+    cells = {row[1]: row[6] for row in ([c.strip() for c in line.split("|")[1:-1]]
+                                        for line in text.splitlines() if line.startswith("| ") and "rank" not in line)}
+    assert cells == {"mftcn1": "old0recording000 *", "mftcn5": "new0recording000", "pixels-cnn": "-"}
+    assert "entries marked * read another recording" in text and "(new0recording000)" in text
+
+
+def test_the_boards_data_set_is_the_one_most_runs_read_and_a_tie_goes_to_the_latest():
+    def run(seed, dataset, at):
+        return dataclasses.replace(make_record("mftcn5", "swingup", seed, {}, created_at=at), dataset_id=dataset)
+
+    old, new = "old0recording000", "new0recording000"
+    two_old = [run(0, old, "2026-03-01T00:00:00+00:00"), run(1, old, "2026-03-02T00:00:00+00:00"),
+               run(2, new, "2026-03-09T00:00:00+00:00"), run(3, None, "2026-03-10T00:00:00+00:00")]
+    assert shared_dataset(two_old) == old  # more runs, though older
+    assert shared_dataset(two_old[1:]) == new  # one each: the latest
+    assert shared_dataset(two_old[3:]) is None  # no run reads data
 
 
 def test_higher_is_better_reverses_the_order():

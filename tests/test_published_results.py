@@ -130,15 +130,29 @@ def check_return_table(block: str, table: str, raw: list[dict]) -> int:
     returns. Every run the rule selects is on a row. Returns the number of rows with runs."""
     tasks = _RETURN_TABLES[table]
     checked: set[tuple[str, str, str]] = set()
-    for row in _markdown_rows(block):
+    rows = _markdown_rows(block)
+    # The data set rows of one task and preset are compared on: the one most of their runs read, a tie going
+    # to the latest run's; a row on another is marked `*` after its seed count.
+    reading: dict[tuple[str, str], list[dict]] = {}
+    for row in rows:
+        task = row.get("task", tasks[0])
+        reading.setdefault((task, row["preset"]), []).extend(
+            r for r in _row_runs(raw, row["encoder"], task, row["preset"]) if r.get("dataset_id"))
+    shared = {key: max(runs, key=lambda r: (sum(o["dataset_id"] == r["dataset_id"] for o in runs),
+                                            r["created_at"], r["run_id"]))["dataset_id"]
+              for key, runs in reading.items() if runs}
+    for row in rows:
         encoder, task, preset = row["encoder"], row.get("task", tasks[0]), row["preset"]
         where = f"{table} row {encoder} / {task} / {preset}"
         if row["seeds"] == "0":  # a paper row without runs: none of its runs exists at a table preset
             assert preset == "-" and not any(_row_runs(raw, encoder, task, p) for p in ("paper", "quick")), where
             continue
         runs = _row_runs(raw, encoder, task, preset)
-        assert int(row["seeds"]) == len(runs) == len({r["seed"] for r in runs}), (
+        seeds, _, mark = row["seeds"].partition(" ")
+        assert int(seeds) == len(runs) == len({r["seed"] for r in runs}), (
             f"{where}: {row['seeds']} seeds printed, {len(runs)} records")
+        other = bool(runs[0].get("dataset_id")) and runs[0]["dataset_id"] != shared[task, preset]
+        assert mark == ("*" if other else ""), f"{where}: marked {mark!r}, its data set {runs[0].get('dataset_id')}"
         for r in runs:  # the run's own figures, from its test episodes (sample std over episodes)
             returns = r["curves"]["test"]["return"]
             assert len(returns) == r["metrics"]["episodes"] == r["config"]["task"]["ppo"]["eval_episodes"]

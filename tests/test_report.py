@@ -1,6 +1,7 @@
 """The paper tables from stored runs: which runs count, rows, cells, formats."""
 
 import copy
+import dataclasses
 
 import pytest
 
@@ -68,6 +69,28 @@ def test_swingup_rows_mean_std_seeds_beside_the_paper():
     assert "- (861.41)" in line_of(text, "True State")  # a paper row with no stored run
     assert "300.00 " in line_of(text, NOT_IN_PAPER, "tcn")
     assert "ddof=1" in text
+
+
+def test_a_row_on_another_recording_than_its_tasks_latest_run_is_marked():
+    def run(encoder, task, seed, dataset, at):
+        made = make_record(encoder, task, seed, {"return_mean": 500.0, "return_std": 50.0}, created_at=at)
+        return dataclasses.replace(made, dataset_id=dataset)
+
+    records = [*(run("mftcn5", "swingup", s, "new0recording000", "2026-03-05T10:00:00+00:00") for s in range(3)),
+               run("mftcn1", "swingup", 0, "old0recording000", "2026-03-01T10:00:00+00:00"),
+               run("pixels-cnn", "swingup", 0, None, "2026-03-09T10:00:00+00:00"),  # reads no data
+               run("mftcn5", "swingup-160", 0, "other0task000000", "2026-03-01T10:00:00+00:00")]  # its own task
+    text = render(TABLES["swingup"], table_rows(TABLES["swingup"], records, accept=accept_all))
+    def seeds(line):
+        cells = [c.strip() for c in line.split("|")[1:-1]]
+        return cells[cells.index("quick") + 1]
+
+    assert seeds(line_of(text, "96x48", "mftcn1")) == "1 *" and seeds(line_of(text, "96x48", "mftcn5")) == "3"
+    assert seeds(line_of(text, "pixels-cnn")) == "1"
+    assert seeds(line_of(text, "160x160", "mftcn5", "swingup-160 ")) == "1"
+    assert "Seeds marked *: the row's runs read another recording" in text
+    unmarked = render(TABLES["swingup"], table_rows(TABLES["swingup"], records[:3], accept=accept_all))
+    assert "Seeds marked" not in unmarked
 
 
 def test_probe_rows_are_matched_by_embedding_size_and_stale_runs_left_out():

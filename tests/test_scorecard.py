@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -96,6 +97,18 @@ def test_the_render_says_how_many_runs_and_tasks_each_figure_rests_on(built, tmp
     assert rows["pve"][4] == "1: cartpole-probe"
     assert "| cartpole-probe | R^2 (mean of 5 state variables) | 0 " in text  # the scale and its runs
     assert scorecard.plot_profiles(built, tmp_path / "p.png").stat().st_size > 1000
+
+
+def test_a_cell_on_another_recording_than_its_tasks_latest_run_is_marked(built):
+    assert not any(c.other_dataset for r in built.rows for c in r.cells.values())
+    assert "another recording" not in scorecard.render(built)
+    older = [dataclasses.replace(r, dataset_id="older0recording0", created_at="2025-12-01T00:00:00+00:00")
+             if r.encoder == "mftcn1" and r.task == "swingup" else r for r in records()]
+    card = scorecard.build(older, "quick", accept=lambda r: True)
+    marked = {(r.encoder, t) for r in card.rows for t, c in r.cells.items() if c.other_dataset}
+    assert marked == {("mftcn1", "swingup")}  # the others read the data set most runs read
+    text = scorecard.render(card)
+    assert "| 0.32 (3) *" in text and "*: the cell's runs read another recording" in text
 
 
 def test_asked_for_encoders_are_scored_with_the_floor_ceiling_and_baseline():

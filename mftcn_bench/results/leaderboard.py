@@ -6,6 +6,10 @@ metric, its direction and its printing come from the task spec's `[leaderboard]`
 (or not installed here) get no board and are named in the index. Pixel encoders are ranked; references (an
 encoder that reads the true state, the scorecard's floor and ceiling: `results.references`) are listed apart
 below them. The index opens with the overall board, the scorecard's (`results.scorecard`).
+
+An entry's runs share one data set (`results.selection`), but entries of one board can rest on different
+recordings of the task's data (another machine, another collector's code): each entry shows its data set's
+fingerprint, and one not on the board's (the one most of its runs read) is marked.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from mftcn_bench.results.selection import (
     left_out_line,
     matches_current_specs,
     preset_order,
+    shared_dataset,
     variant_key,
     variant_label,
 )
@@ -48,6 +53,8 @@ class Entry:
     reference: str | None = None    # why it is listed apart (`references.reference_role`); None: ranked
     privileged: tuple[str, ...] = ()  # what its encoder declared besides pixels
     run_ids: tuple[str, ...] = ()   # the runs behind it, by seed
+    dataset: str | None = None      # the fingerprint of the data set its runs read; None: it reads none
+    other_dataset: bool = False     # it reads a data set other than the board's (`selection.shared_dataset`)
 
     @property
     def reads(self) -> str:
@@ -57,6 +64,7 @@ class Entry:
 
 def entries(runs: Sequence[RunRecord], rank: Ranking) -> list[Entry]:
     """Entries of one (task, preset), best first; ties (and missing metrics) ordered by encoder name."""
+    shared = shared_dataset(runs)
     groups: dict[tuple, list[RunRecord]] = defaultdict(list)
     for record in runs:
         groups[variant_key(record)].append(record)
@@ -67,28 +75,40 @@ def entries(runs: Sequence[RunRecord], rank: Ranking) -> list[Entry]:
             continue
         version = ", ".join(sorted({code_label(r) for r in group}))
         date = max(r.created_at for r in group)[:10]
+        dataset = group[0].dataset_id or None
         out.append(Entry(variant_label(group[0]), stats, group[0].preset, version, date, reference_role(group[0]),
-                         privileged_of(group[0]), tuple(r.run_id for r in sorted(group, key=lambda r: r.seed))))
+                         privileged_of(group[0]), tuple(r.run_id for r in sorted(group, key=lambda r: r.seed)),
+                         dataset, dataset is not None and dataset != shared))
     sign = -1.0 if rank.higher_is_better else 1.0
     return sorted(out, key=lambda e: (sign * e.stats.mean, e.encoder))
 
 
+def dataset_label(entry: Entry) -> str:
+    """The entry's data set fingerprint, `*` after one not on the board's; `-` for an encoder that reads none."""
+    return "-" if entry.dataset is None else entry.dataset + (" *" if entry.other_dataset else "")
+
+
 def _board(rank: Ranking, board: Sequence[Entry]) -> str:
-    """The ranked pixel encoders, then the references apart (unranked)."""
+    """The ranked pixel encoders, then the references apart (unranked), then which entries read another data set."""
     ranked = [e for e in board if e.reference is None]
     references = [e for e in board if e.reference is not None]
-    headers = ["rank", "encoder", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "reads", "encoder code",
-               "date"]
+    headers = ["rank", "encoder", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "reads", "data set",
+               "encoder code", "date"]
     rows = [[str(i), e.encoder, rank.format(e.stats), rank.format_iqm(e.stats), str(e.stats.n), e.reads,
-             e.version, e.date] for i, e in enumerate(ranked, 1)]
+             dataset_label(e), e.version, e.date] for i, e in enumerate(ranked, 1)]
     text = tabulate(rows, headers=headers, tablefmt="github", disable_numparse=True) if rows else (
         "No pixel encoder has runs here.")
     if references:
         rows = [[e.encoder, e.reference, rank.format(e.stats), rank.format_iqm(e.stats), str(e.stats.n),
-                 e.version, e.date] for e in references]
+                 dataset_label(e), e.version, e.date] for e in references]
         text += "\n\nReferences (not ranked):\n\n" + tabulate(
-            rows, headers=["encoder", "role", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "encoder code",
-                           "date"], tablefmt="github", disable_numparse=True)
+            rows, headers=["encoder", "role", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "data set",
+                           "encoder code", "date"], tablefmt="github", disable_numparse=True)
+    if any(e.other_dataset for e in board):
+        shared = next((e.dataset for e in board if e.dataset is not None and not e.other_dataset), None)
+        text += ("\n\nNot one data set: the entries marked * read another recording of this task's data (another "
+                 f"machine or collector code) than most of the board's runs ({shared or 'an entry without this metric'}"
+                 "); a place between entries on different recordings holds only as far as the recordings agree.")
     return text
 
 
@@ -111,7 +131,9 @@ def _explain(rank: Ranking) -> str:
             f"counts. Reads: the encoder's inputs (pixels, and `action` for one that also reads the recorded "
             f"actions). References (encoders that read the true state, the scorecard's floor and ceiling) are "
             f"listed apart, not ranked. Encoder code: the distribution and version that shipped the encoder (a "
-            f"plugin's own). Date: the latest of the entry's runs.")
+            f"plugin's own). Data set: the fingerprint of the data set the entry's runs read (`-`: none), marked * "
+            f"when it is not the one most of the board's runs read. Date: the latest of the entry's "
+            f"runs.")
 
 
 _INDEX_TITLE = "# Leaderboards"

@@ -34,6 +34,7 @@ from mftcn_bench.results.selection import (
     lookup,
     matches_current_specs,
     preset_order,
+    shared_dataset,
     variant_key,
     variant_label,
 )
@@ -44,6 +45,9 @@ __all__ = ["TABLES", "ReportRow", "matches_current_specs", "render", "report", "
 
 Format = Literal["markdown", "latex"]
 NOT_IN_PAPER = "(not in paper)"
+OTHER_DATASET = ("Seeds marked *: the row's runs read another recording of its task's data (another machine or "
+                 "collector code) than most runs of that task and preset read; it compares with the other rows only "
+                 "as far as the recordings agree.")
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,7 @@ class ReportRow:
     stats: tuple[SeedStats | None, ...]
     paper: tuple[float | None, ...] | None
     code: str = "-"   # the encoder's distribution and version (`selection.code_label`) of the rows' runs
+    other_dataset: bool = False  # its runs read another data set than its (task, preset)'s latest run
 
 
 def _row_matches(table: PaperTable, row: PaperRow, record: RunRecord, defaults: SpecDefaults) -> bool:
@@ -117,6 +122,15 @@ def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | No
     most the table's `varied` keys overridden."""
     runs = _counted(table, records, preset, accept)
     defaults = SpecDefaults()
+    by_board: dict[tuple[str, str], list[RunRecord]] = defaultdict(list)
+    for record in runs:
+        by_board[record.task, record.preset].append(record)
+    shared = {key: shared_dataset(group) for key, group in by_board.items()}
+
+    def other(group: Sequence[RunRecord]) -> bool:
+        first = group[0]
+        return bool(first.dataset_id) and first.dataset_id != shared[first.task, first.preset]
+
     rows: list[ReportRow] = []
     for paper_row in table.rows:
         groups = _by_preset(r for r in runs if _row_matches(table, paper_row, r, defaults))
@@ -125,14 +139,14 @@ def table_rows(table: PaperTable, records: Iterable[RunRecord], preset: str | No
                                   (None,) * len(table.columns), paper_row.paper))
         for preset_name, group in groups.items():
             rows.append(ReportRow(paper_row.labels, paper_row.encoder, paper_row.task, preset_name, len(group),
-                                  _stats(table, group), paper_row.paper, _code(group)))
+                                  _stats(table, group), paper_row.paper, _code(group), other(group)))
     if not table.other_runs:
         return rows
     blank = ("",) * (len(table.label_headers) - 1)
     for group in _uncovered(table, runs, defaults).values():
         first = group[0]
         rows.append(ReportRow((NOT_IN_PAPER, *blank), variant_label(first, table.varied), first.task, first.preset,
-                              len(group), _stats(table, group), None, _code(group)))
+                              len(group), _stats(table, group), None, _code(group), other(group)))
     return rows
 
 
@@ -189,7 +203,7 @@ def render(table: PaperTable, rows: Sequence[ReportRow], fmt: Format = "markdown
         cells = [_cell(s, row.paper[i] if row.paper else None, row.paper is not None, table.decimals, fmt)
                  for i, s in enumerate(row.stats)]
         labels = [*row.labels, row.encoder, *([row.task] if multi_task else []), row.preset or "-",
-                  str(row.seeds)]
+                  f"{row.seeds} *" if row.other_dataset else str(row.seeds)]
         if fmt == "latex":
             labels = [_latex_escape(text) for text in labels]
         body.append([*labels, *cells, _latex_escape(row.code) if fmt == "latex" else row.code])
@@ -201,9 +215,12 @@ def render(table: PaperTable, rows: Sequence[ReportRow], fmt: Format = "markdown
     if fmt == "latex":
         headers = [_latex_escape(h) for h in headers]
         text = tabulate(body, headers=headers, tablefmt="latex_raw", disable_numparse=True)
-        caption = _latex_escape(f"{table.title}. {explain}").replace("±", "$\\pm$")
+        marked = f" {OTHER_DATASET}" if any(row.other_dataset for row in rows) else ""
+        caption = _latex_escape(f"{table.title}. {explain}{marked}").replace("±", "$\\pm$")
         return f"\\begin{{table}}[h]\n\\caption{{{caption}}}\n\\centering\n{text}\n\\end{{table}}"
     text = tabulate(body, headers=headers, tablefmt="github", disable_numparse=True)
+    if any(row.other_dataset for row in rows):
+        text += f"\n\n{OTHER_DATASET}"
     return f"### {table.title}\n\n{explain}\n\n{text}"
 
 

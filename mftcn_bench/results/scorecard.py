@@ -6,7 +6,8 @@ counted runs there (random state scores 0, true state 1; an error metric works t
 below its floor). A cell is an encoder's runs on one task. An encoder's aggregate is over every run of the
 tasks where it has the spec's `runs` runs: the interquartile mean and mean with stratified-bootstrap
 intervals, and its probability of improvement over the baseline encoder on the tasks both have. Runs are
-the ones a board counts (`results.selection`: today's specs, one code and one data set per row).
+the ones a board counts (`results.selection`: today's specs, one code and one data set per row); a cell on
+another recording of its task's data than most of the task's runs read is marked, as on the boards.
 """
 
 from __future__ import annotations
@@ -30,7 +31,14 @@ from mftcn_bench.results.intervals import (
 )
 from mftcn_bench.results.ranking import ranking
 from mftcn_bench.results.references import anchors, privileged_of, reference_role
-from mftcn_bench.results.selection import Accept, counted_runs, left_out_line, matches_current_specs, overridden
+from mftcn_bench.results.selection import (
+    Accept,
+    counted_runs,
+    left_out_line,
+    matches_current_specs,
+    overridden,
+    shared_dataset,
+)
 from mftcn_bench.results.stats import format_number
 from mftcn_bench.results.store import RunRecord
 
@@ -76,6 +84,7 @@ class Cell:
     scores: tuple[float, ...]
     values: tuple[float, ...]
     run_ids: tuple[str, ...]
+    other_dataset: bool = False   # its runs read another data set than most of the task's runs (`shared_dataset`)
 
     @property
     def mean(self) -> float:
@@ -166,6 +175,7 @@ def build(records: Iterable[RunRecord], preset: str = "paper", encoders: Sequenc
         scale = scales.get(scoring.task)
         if scale is None:
             continue
+        shared = shared_dataset(by_task.get(scoring.task, []))
         for record in sorted(by_task.get(scoring.task, []), key=lambda r: (r.encoder, r.seed)):
             value = scoring.value(record)
             if value is None or (wanted is not None and record.encoder not in wanted):
@@ -174,7 +184,8 @@ def build(records: Iterable[RunRecord], preset: str = "paper", encoders: Sequenc
             cell = cells.setdefault(record.encoder, {}).get(scoring.task)
             cells[record.encoder][scoring.task] = Cell(
                 scoring.task, (*(cell.seeds if cell else ()), record.seed), (*(cell.scores if cell else ()), score),
-                (*(cell.values if cell else ()), value), (*(cell.run_ids if cell else ()), record.run_id))
+                (*(cell.values if cell else ()), value), (*(cell.run_ids if cell else ()), record.run_id),
+                bool(record.dataset_id) and record.dataset_id != shared)
             example.setdefault(record.encoder, record)
 
     def matrix(encoder: str, tasks: Sequence[str]) -> np.ndarray:
@@ -207,7 +218,7 @@ def _interval(estimate: Estimate | None) -> str:
 
 
 def _cell(cell: Cell | None) -> str:
-    return "-" if cell is None else f"{_score(cell.mean)} ({len(cell.scores)})"
+    return "-" if cell is None else f"{_score(cell.mean)} ({len(cell.scores)})" + (" *" if cell.other_dataset else "")
 
 
 def render(card: Scorecard) -> str:
@@ -241,6 +252,10 @@ def render(card: Scorecard) -> str:
                   f"1 = {anchors()[1]}):", "",
                   tabulate(cell_rows, headers=["encoder", *(t.task for t in scored)], tablefmt="github",
                            disable_numparse=True), ""]
+        if any(c.other_dataset for r in card.rows for c in r.cells.values()):
+            lines += ["*: the cell's runs read another recording of the task's data (another machine or collector "
+                      "code) than most of the task's runs read; it compares with the others only as far as the "
+                      "recordings agree.", ""]
         scale = [[t.task, t.label, _raw(card.anchors[t.task].floor), str(card.anchors[t.task].floor_runs),
                   _raw(card.anchors[t.task].ceiling), str(card.anchors[t.task].ceiling_runs)] for t in scored]
         lines += ["Scales:", "", tabulate(scale, headers=["task", "scored by", "floor", "runs", "ceiling", "runs"],

@@ -154,6 +154,17 @@ def _select(records: Iterable[RunRecord], accept: Accept,
     return sorted(counted, key=lambda r: (tuple(str(p) for p in variant_key(r, varied)), r.seed)), reasons
 
 
+def shared_dataset(runs: Iterable[RunRecord]) -> str | None:
+    """The data set that runs of different encoders on one (task, preset) are compared on: the one most of the
+    runs that read data read (a tie: the latest run's of the tied ones); None when none reads data. Each row reads
+    one data set, but rows can rest on different recordings (another machine, another collector's code)."""
+    reading = [r for r in runs if r.dataset_id]
+    if not reading:
+        return None
+    counts = Counter(r.dataset_id for r in reading)
+    return max(reading, key=lambda r: (counts[r.dataset_id], _when(r))).dataset_id
+
+
 def _when(record: RunRecord) -> tuple[str, str]:
     return record.created_at, record.run_id
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from mftcn_bench.core.fileio import atomic_write_bytes
 from mftcn_bench.results import scorecard
-from mftcn_bench.results.leaderboard import Entry, by_task_and_preset, entries, overall_cards
+from mftcn_bench.results.leaderboard import Entry, by_task_and_preset, dataset_label, entries, overall_cards
 from mftcn_bench.results.paper_tables import TABLES
 from mftcn_bench.results.ranking import Ranking, ranking
 from mftcn_bench.results.selection import Accept, counted_runs, left_out_line, matches_current_specs
@@ -68,21 +68,27 @@ def _entry_row(rank: Ranking, entry: Entry, place: str, task: str) -> str:
             + _value_cell(rank.format_iqm(entry.stats), entry.stats.iqm)
             + f'<td data-sort="{entry.stats.n}">{entry.stats.n}</td>'
             + _value_cell(paper_text, paper)
-            + f"<td>{_e(role or entry.reads)}</td><td>{_e(entry.version)}</td><td>{_e(entry.date)}</td>"
+            + f"<td>{_e(role or entry.reads)}</td><td>{_e(dataset_label(entry))}</td><td>{_e(entry.version)}</td>"
+            + f"<td>{_e(entry.date)}</td>"
             + f'<td class="records">{_links(entry.run_ids)}</td></tr>')
+
+
+_OTHER_DATASET = "; data set marked *: another recording than most of the board's runs read"
 
 
 def _task_board(task: str, preset: str, rank: Ranking, board: Sequence[Entry]) -> str:
     ranked = [e for e in board if e.reference is None]
     references = [e for e in board if e.reference is not None]
     better = "higher" if rank.higher_is_better else "lower"
+    other = _OTHER_DATASET if any(e.other_dataset for e in board) else ""
     rows = [_entry_row(rank, e, str(i), task) for i, e in enumerate(ranked, 1)]
     rows += [_entry_row(rank, e, "", task) for e in references]
     headers = ["rank", "encoder", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "paper", "reads / role",
-               "encoder code", "date", "records (by seed)"]
+               "data set", "encoder code", "date", "records (by seed)"]
     return (f'<section class="board" data-family="{_e(family(task))}" data-preset="{_e(preset)}" '
             f'data-task="{_e(task)}"><h3>{_e(task)} <small>preset {_e(preset)}; {_e(rank.label)}, {better} is '
-            f"better; references (ref) are listed, not ranked</small></h3>{_table(headers, rows)}</section>")
+            f"better; references (ref) are listed, not ranked{other}"
+            f"</small></h3>{_table(headers, rows)}</section>")
 
 
 def _table(headers: Sequence[str], rows: Sequence[str]) -> str:
@@ -99,7 +105,7 @@ def _interval_cell(estimate: scorecard.Estimate | None) -> str:
 def _score_cell(cell: scorecard.Cell | None) -> str:
     if cell is None:
         return "<td>-</td>"
-    return _value_cell(f"{cell.mean:.2f} ({len(cell.scores)})", cell.mean)
+    return _value_cell(f"{cell.mean:.2f} ({len(cell.scores)})" + (" *" if cell.other_dataset else ""), cell.mean)
 
 
 def _overall(card: scorecard.Scorecard, profile: Path | None) -> str:
@@ -126,11 +132,14 @@ def _overall(card: scorecard.Scorecard, profile: Path | None) -> str:
         image = (f'<img class="profile" alt="performance profiles, preset {_e(card.preset)}" '
                  f'src="data:image/png;base64,{data}">')
     unscored = "; ".join(f"{t} ({why})" for t, why in card.unscored.items())
+    marked = (" A cell marked *: its runs read another recording of the task's data than most of the task's runs read."
+              if any(c.other_dataset for r in card.rows for c in r.cells.values()) else "")
     return (f'<section class="board overall" data-family="all" data-preset="{_e(card.preset)}">'
             f"<h3>Overall, preset {_e(card.preset)} <small>normalised scores, 0 = random state, 1 = true state; "
             f"ranked by aggregate IQM over the tasks with {card.runs} runs, those over more tasks "
             f"first</small></h3>"
-            f"{_table(headers, rows)}<p class=\"note\">Not scored: {_e(unscored or 'none')}.</p>{image}</section>")
+            f"{_table(headers, rows)}<p class=\"note\">Not scored: {_e(unscored or 'none')}.{marked}</p>{image}"
+            "</section>")
 
 
 _STYLE = """
