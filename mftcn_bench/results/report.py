@@ -63,7 +63,7 @@ class ReportRow:
     stats: tuple[SeedStats | None, ...]
     paper: tuple[float | None, ...] | None
     code: str = "-"   # the encoder's distribution and version (`selection.code_label`) of the rows' runs
-    other_dataset: bool = False  # its runs read another data set than its (task, preset)'s latest run
+    other_dataset: bool = False  # its runs read another data set than most runs of its (task, preset)
 
 
 def _row_matches(table: PaperTable, row: PaperRow, record: RunRecord, defaults: SpecDefaults) -> bool:
