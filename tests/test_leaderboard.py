@@ -62,7 +62,7 @@ def test_an_entry_on_another_recording_than_the_boards_latest_run_is_marked():
     cells = {row[1]: row[6] for row in ([c.strip() for c in line.split("|")[1:-1]]
                                         for line in text.splitlines() if line.startswith("| ") and "rank" not in line)}
     assert cells == {"mftcn1": "old0recording000 *", "mftcn5": "new0recording000", "pixels-cnn": "-"}
-    assert "entries marked * read another recording" in text and "(new0recording000)" in text
+    assert "Entries marked * rest on another recording" in text and "runs read new0recording000." in text
 
 
 def test_the_boards_data_set_is_the_one_most_runs_read_and_a_tie_goes_to_the_latest():

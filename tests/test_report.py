@@ -88,7 +88,7 @@ def test_a_row_on_another_recording_than_its_tasks_latest_run_is_marked():
     assert seeds(line_of(text, "96x48", "mftcn1")) == "1 *" and seeds(line_of(text, "96x48", "mftcn5")) == "3"
     assert seeds(line_of(text, "pixels-cnn")) == "1"
     assert seeds(line_of(text, "160x160", "mftcn5", "swingup-160 ")) == "1"
-    assert "Seeds marked *: the row's runs read another recording" in text
+    assert "Seeds marked * rest on another recording" in text
     unmarked = render(TABLES["swingup"], table_rows(TABLES["swingup"], records[:3], accept=accept_all))
     assert "Seeds marked" not in unmarked
 

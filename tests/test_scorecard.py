@@ -108,7 +108,7 @@ def test_a_cell_on_another_recording_than_its_tasks_latest_run_is_marked(built):
     marked = {(r.encoder, t) for r in card.rows for t, c in r.cells.items() if c.other_dataset}
     assert marked == {("mftcn1", "swingup")}  # the others read the data set most runs read
     text = scorecard.render(card)
-    assert "| 0.32 (3) *" in text and "*: the cell's runs read another recording" in text
+    assert "| 0.32 (3) *" in text and "Cells marked * rest on another recording" in text
 
 
 def test_asked_for_encoders_are_scored_with_the_floor_ceiling_and_baseline():

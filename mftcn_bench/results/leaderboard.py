@@ -32,6 +32,7 @@ from mftcn_bench.results.selection import (
     counted_runs,
     left_out_line,
     matches_current_specs,
+    other_dataset_note,
     preset_order,
     shared_dataset,
     variant_key,
@@ -106,9 +107,8 @@ def _board(rank: Ranking, board: Sequence[Entry]) -> str:
                            "encoder code", "date"], tablefmt="github", disable_numparse=True)
     if any(e.other_dataset for e in board):
         shared = next((e.dataset for e in board if e.dataset is not None and not e.other_dataset), None)
-        text += ("\n\nNot one data set: the entries marked * read another recording of this task's data (another "
-                 f"machine or collector code) than most of the board's runs ({shared or 'an entry without this metric'}"
-                 "); a place between entries on different recordings holds only as far as the recordings agree.")
+        text += (f"\n\nNot one data set. {other_dataset_note('Entries')} Most of this board's runs read "
+                 f"{shared or 'the data set of an entry without this metric'}.")
     return text
 
 

@@ -33,6 +33,7 @@ from mftcn_bench.results.selection import (
     left_out_line,
     lookup,
     matches_current_specs,
+    other_dataset_note,
     preset_order,
     shared_dataset,
     variant_key,
@@ -45,9 +46,7 @@ __all__ = ["TABLES", "ReportRow", "matches_current_specs", "render", "report", "
 
 Format = Literal["markdown", "latex"]
 NOT_IN_PAPER = "(not in paper)"
-OTHER_DATASET = ("Seeds marked *: the row's runs read another recording of its task's data (another machine or "
-                 "collector code) than most runs of that task and preset read; it compares with the other rows only "
-                 "as far as the recordings agree.")
+OTHER_DATASET = other_dataset_note("Seeds")
 
 
 @dataclass(frozen=True)

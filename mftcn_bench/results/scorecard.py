@@ -36,6 +36,7 @@ from mftcn_bench.results.selection import (
     counted_runs,
     left_out_line,
     matches_current_specs,
+    other_dataset_note,
     overridden,
     shared_dataset,
 )
@@ -253,9 +254,7 @@ def render(card: Scorecard) -> str:
                   tabulate(cell_rows, headers=["encoder", *(t.task for t in scored)], tablefmt="github",
                            disable_numparse=True), ""]
         if any(c.other_dataset for r in card.rows for c in r.cells.values()):
-            lines += ["*: the cell's runs read another recording of the task's data (another machine or collector "
-                      "code) than most of the task's runs read; it compares with the others only as far as the "
-                      "recordings agree.", ""]
+            lines += [other_dataset_note("Cells"), ""]
         scale = [[t.task, t.label, _raw(card.anchors[t.task].floor), str(card.anchors[t.task].floor_runs),
                   _raw(card.anchors[t.task].ceiling), str(card.anchors[t.task].ceiling_runs)] for t in scored]
         lines += ["Scales:", "", tabulate(scale, headers=["task", "scored by", "floor", "runs", "ceiling", "runs"],

@@ -165,6 +165,13 @@ def shared_dataset(runs: Iterable[RunRecord]) -> str | None:
     return max(reading, key=lambda r: (counts[r.dataset_id], _when(r))).dataset_id
 
 
+def other_dataset_note(marked: str) -> str:
+    """The one explanation of a `*` that boards, tables and the scorecard put beside what `shared_dataset` marks;
+    `marked` names what carries the mark ("Entries", "Seeds", "Cells")."""
+    return (f"{marked} marked * rest on another recording of the task's data (another machine or collector code) than "
+            "most of the task's runs read; they compare with the rest only as far as the recordings agree.")
+
+
 def _when(record: RunRecord) -> tuple[str, str]:
     return record.created_at, record.run_id
 

@@ -24,7 +24,13 @@ from mftcn_bench.results import scorecard
 from mftcn_bench.results.leaderboard import Entry, by_task_and_preset, dataset_label, entries, overall_cards
 from mftcn_bench.results.paper_tables import TABLES
 from mftcn_bench.results.ranking import Ranking, ranking
-from mftcn_bench.results.selection import Accept, counted_runs, left_out_line, matches_current_specs
+from mftcn_bench.results.selection import (
+    Accept,
+    counted_runs,
+    left_out_line,
+    matches_current_specs,
+    other_dataset_note,
+)
 from mftcn_bench.results.store import RunRecord
 
 
@@ -73,14 +79,13 @@ def _entry_row(rank: Ranking, entry: Entry, place: str, task: str) -> str:
             + f'<td class="records">{_links(entry.run_ids)}</td></tr>')
 
 
-_OTHER_DATASET = "; data set marked *: another recording than most of the board's runs read"
 
 
 def _task_board(task: str, preset: str, rank: Ranking, board: Sequence[Entry]) -> str:
     ranked = [e for e in board if e.reference is None]
     references = [e for e in board if e.reference is not None]
     better = "higher" if rank.higher_is_better else "lower"
-    other = _OTHER_DATASET if any(e.other_dataset for e in board) else ""
+    other = "; " + _e(other_dataset_note("Entries")) if any(e.other_dataset for e in board) else ""
     rows = [_entry_row(rank, e, str(i), task) for i, e in enumerate(ranked, 1)]
     rows += [_entry_row(rank, e, "", task) for e in references]
     headers = ["rank", "encoder", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "paper", "reads / role",
@@ -132,7 +137,7 @@ def _overall(card: scorecard.Scorecard, profile: Path | None) -> str:
         image = (f'<img class="profile" alt="performance profiles, preset {_e(card.preset)}" '
                  f'src="data:image/png;base64,{data}">')
     unscored = "; ".join(f"{t} ({why})" for t, why in card.unscored.items())
-    marked = (" A cell marked *: its runs read another recording of the task's data than most of the task's runs read."
+    marked = (" " + _e(other_dataset_note("Cells"))
               if any(c.other_dataset for r in card.rows for c in r.cells.values()) else "")
     return (f'<section class="board overall" data-family="all" data-preset="{_e(card.preset)}">'
             f"<h3>Overall, preset {_e(card.preset)} <small>normalised scores, 0 = random state, 1 = true state; "
