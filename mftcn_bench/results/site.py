@@ -79,8 +79,6 @@ def _entry_row(rank: Ranking, entry: Entry, place: str, task: str) -> str:
             + f'<td class="records">{_links(entry.run_ids)}</td></tr>')
 
 
-
-
 def _task_board(task: str, preset: str, rank: Ranking, board: Sequence[Entry]) -> str:
     ranked = [e for e in board if e.reference is None]
     references = [e for e in board if e.reference is not None]
