@@ -322,6 +322,8 @@ QUEUE_CASES = {
     "a queue name that is a path": (["sweep", "--encoders", "true-state", "--tasks", "swingup", "--queue", "../x"],
                                     ["--queue '../x'", "a plain file name"]),
     "status of a queue that does not exist": (["sweep", "status", "--queue", "nope"], ["no queue 'nope'"]),
+    "an export without a queue": (["sweep", "--encoders", "true-state", "--tasks", "swingup", "--export", "out"],
+                                  ["--export out", "add --queue NAME", "results export"]),
 }
 
 

@@ -115,6 +115,9 @@ def cmd_sweep(args: argparse.Namespace) -> None:
     if args.action == "status":
         return _sweep_status(home, args.queue)
     export = Path(args.export) if args.export else None
+    if export is not None and not args.queue:  # the queue's listener writes the records: without one none would be
+        raise SpecError(f"--export {args.export}: records are exported as a queue stores them; add --queue NAME, or "
+                        "write them after the sweep with `results export DIR --task T --preset P`")
     if args.encoders is None and args.tasks is None and args.queue:  # continue a recorded grid
         recorded = SweepQueue.open(home, args.queue).request
         request = replace(recorded, workers=recorded.workers if args.workers is None else args.workers)
