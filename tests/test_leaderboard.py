@@ -65,6 +65,19 @@ def test_an_entry_on_another_recording_than_the_boards_latest_run_is_marked():
     assert "Entries marked * rest on another recording" in text and "runs read new0recording000." in text
 
 
+def test_the_note_names_the_boards_data_set_when_the_runs_that_read_it_lack_the_ranked_metric():
+    def run(encoder, seed, dataset, metrics):
+        record = make_record(encoder, "cartpole-probe", seed, metrics, config=probe_config(encoder),
+                             created_at=f"2026-03-0{seed + 1}T10:00:00+00:00")
+        return dataclasses.replace(record, dataset_id=dataset)
+
+    runs = [run("mftcn5", 0, "new0recording000", {}), run("mftcn5", 1, "new0recording000", {}),
+            run("mftcn1", 2, "old0recording000", {"average": 1.0})]
+    assert [e.encoder for e in entries(runs, ranking("cartpole-probe"))] == ["mftcn1"]  # mftcn5 has no metric
+    text = render_boards(runs)["cartpole-probe.md"]
+    assert "old0recording000 *" in text and "Most of this board's runs read new0recording000." in text
+
+
 def test_the_boards_data_set_is_the_one_most_runs_read_and_a_tie_goes_to_the_latest():
     def run(seed, dataset, at):
         return dataclasses.replace(make_record("mftcn5", "swingup", seed, {}, created_at=at), dataset_id=dataset)

@@ -89,8 +89,9 @@ def dataset_label(entry: Entry) -> str:
     return "-" if entry.dataset is None else entry.dataset + (" *" if entry.other_dataset else "")
 
 
-def _board(rank: Ranking, board: Sequence[Entry]) -> str:
-    """The ranked pixel encoders, then the references apart (unranked), then which entries read another data set."""
+def _board(rank: Ranking, board: Sequence[Entry], shared: str | None) -> str:
+    """The ranked pixel encoders, then the references apart (unranked), then which entries read another data set
+    than `shared`, the board's (`selection.shared_dataset` of its runs)."""
     ranked = [e for e in board if e.reference is None]
     references = [e for e in board if e.reference is not None]
     headers = ["rank", "encoder", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "reads", "data set",
@@ -106,9 +107,7 @@ def _board(rank: Ranking, board: Sequence[Entry]) -> str:
             rows, headers=["encoder", "role", f"{rank.label} (mean ± std)", "IQM [95% CI]", "seeds", "data set",
                            "encoder code", "date"], tablefmt="github", disable_numparse=True)
     if any(e.other_dataset for e in board):
-        shared = next((e.dataset for e in board if e.dataset is not None and not e.other_dataset), None)
-        text += (f"\n\nNot one data set. {other_dataset_note('Entries')} Most of this board's runs read "
-                 f"{shared or 'the data set of an entry without this metric'}.")
+        text += f"\n\nNot one data set. {other_dataset_note('Entries')} Most of this board's runs read {shared}."
     return text
 
 
@@ -168,7 +167,7 @@ def render_boards(records: Iterable[RunRecord], accept: Accept = matches_current
         lines = [f"# {task}", "", _explain(rank)]
         for preset, runs in presets.items():
             board = entries(runs, rank)
-            lines += ["", f"## preset `{preset}`", "", _board(rank, board)]
+            lines += ["", f"## preset `{preset}`", "", _board(rank, board, shared_dataset(runs))]
             best = next((e for e in board if e.reference is None), None)
             index.append(f"| [{task}]({task}.md) | {rank.label} ({direction} is better) | {preset} | "
                          + (f"{best.encoder}: {rank.format(best.stats)} | {best.stats.n} |" if best
